@@ -1,0 +1,256 @@
+"""The event stream container shared by the simulator, the file readers and the solver.
+
+An :class:`EventStream` is plain NumPy (events are data, not differentiable leaves): the
+columns `x`, `y`, `p` (1 = ON, 0 = OFF, as Prophesee), `t_us` (int64 microseconds), the
+sensor geometry, and optional external triggers (e.g. a mirror encoder marking each
+sweep start). The `.npz` layout is the contract of DESIGN.md.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["EventStream", "atomic_write"]
+
+
+def atomic_write(path: str | os.PathLike, write) -> None:
+    """Write a file whole or not at all.
+
+    `write(fileobj)` fills a temporary file in the destination folder, which is then
+    renamed over `path`; on any error the temporary file is removed and `path` is left
+    as it was.
+    """
+    path = Path(path)
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.is_dir():
+        raise ValueError(f"cannot write {path}: folder {folder} does not exist")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class EventStream:
+    """A time-ordered stream of camera events.
+
+    **Arguments:**
+
+    - `x`, `y`: pixel coordinates, shape `(ev,)`, integers in `[0, width)`, `[0, height)`.
+    - `p`: polarity, shape `(ev,)`, 1 for ON (brighter) and 0 for OFF.
+    - `t_us`: timestamps in microseconds, shape `(ev,)`, int64, non-decreasing.
+    - `width`, `height`: sensor geometry in pixels.
+    - `trigger_t_us`, `trigger_p`, `trigger_id`: external trigger events (may be empty).
+    """
+
+    x: np.ndarray
+    y: np.ndarray
+    p: np.ndarray
+    t_us: np.ndarray
+    width: int
+    height: int
+    trigger_t_us: np.ndarray = dataclasses.field(
+        default_factory=lambda: np.zeros(0, np.int64)
+    )
+    trigger_p: np.ndarray = dataclasses.field(
+        default_factory=lambda: np.zeros(0, np.uint8)
+    )
+    trigger_id: np.ndarray = dataclasses.field(
+        default_factory=lambda: np.zeros(0, np.uint8)
+    )
+
+    def __post_init__(self):
+        cast = {
+            "x": np.uint16,
+            "y": np.uint16,
+            "p": np.uint8,
+            "t_us": np.int64,
+            "trigger_t_us": np.int64,
+            "trigger_p": np.uint8,
+            "trigger_id": np.uint8,
+        }
+        for name, dtype in cast.items():
+            value = np.asarray(getattr(self, name))
+            if value.ndim != 1:
+                raise ValueError(f"event column {name!r} must be 1-D, got {value.shape}")
+            if value.size and np.issubdtype(value.dtype, np.integer):
+                info = np.iinfo(dtype)
+                if value.min() < info.min or value.max() > info.max:
+                    raise ValueError(
+                        f"event column {name!r} has values outside {dtype.__name__}"
+                    )
+            elif value.size and not np.issubdtype(value.dtype, np.integer):
+                if not np.array_equal(value, np.round(value)):
+                    raise ValueError(f"event column {name!r} must hold integers")
+            object.__setattr__(self, name, value.astype(dtype, copy=False))
+        object.__setattr__(self, "width", int(self.width))
+        object.__setattr__(self, "height", int(self.height))
+        n = self.x.size
+        for name in ("y", "p", "t_us"):
+            if getattr(self, name).size != n:
+                raise ValueError(
+                    f"event columns differ in length: x has {n}, "
+                    f"{name} has {getattr(self, name).size}"
+                )
+        if not (self.trigger_t_us.size == self.trigger_p.size == self.trigger_id.size):
+            raise ValueError("trigger columns differ in length")
+        if self.width <= 0 or self.height <= 0:
+            raise ValueError(
+                f"sensor geometry must be positive, got {self.width}x{self.height}"
+            )
+        if n:
+            if self.x.max() >= self.width or self.y.max() >= self.height:
+                raise ValueError(
+                    f"event coordinates outside the {self.width}x{self.height} geometry"
+                )
+            if self.p.max() > 1:
+                raise ValueError("polarity must be 0 (OFF) or 1 (ON)")
+
+    def __len__(self) -> int:
+        return int(self.x.size)
+
+    @property
+    def polarity_sign(self) -> np.ndarray:
+        """Polarity as ±1 (int8)."""
+        return (2 * self.p.astype(np.int8) - 1).astype(np.int8)
+
+    @property
+    def duration_us(self) -> int:
+        """Time from the first to the last event, in microseconds (0 if < 2 events)."""
+        return int(self.t_us[-1] - self.t_us[0]) if len(self) > 1 else 0
+
+    def is_time_ordered(self) -> bool:
+        return bool(np.all(np.diff(self.t_us) >= 0))
+
+    def sorted_by_time(self) -> EventStream:
+        """A copy in non-decreasing time order (stable: ties keep their order)."""
+        if self.is_time_ordered():
+            return self
+        order = np.argsort(self.t_us, kind="stable")
+        return self.take(order)
+
+    def take(self, index) -> EventStream:
+        """A new stream with the events selected by `index` (triggers kept)."""
+        return dataclasses.replace(
+            self,
+            x=self.x[index],
+            y=self.y[index],
+            p=self.p[index],
+            t_us=self.t_us[index],
+        )
+
+    def time_window(self, t0_us: int, t1_us: int) -> EventStream:
+        """Events and triggers with `t0_us <= t_us < t1_us` (stream must be ordered)."""
+        lo, hi = np.searchsorted(self.t_us, [t0_us, t1_us], side="left")
+        tlo, thi = np.searchsorted(self.trigger_t_us, [t0_us, t1_us], side="left")
+        return dataclasses.replace(
+            self,
+            x=self.x[lo:hi],
+            y=self.y[lo:hi],
+            p=self.p[lo:hi],
+            t_us=self.t_us[lo:hi],
+            trigger_t_us=self.trigger_t_us[tlo:thi],
+            trigger_p=self.trigger_p[tlo:thi],
+            trigger_id=self.trigger_id[tlo:thi],
+        )
+
+    @staticmethod
+    def concatenate(streams: list[EventStream]) -> EventStream:
+        """Join streams of one geometry, keeping time order (stable merge)."""
+        if not streams:
+            raise ValueError("nothing to concatenate")
+        w, h = streams[0].width, streams[0].height
+        if any((s.width, s.height) != (w, h) for s in streams):
+            raise ValueError("cannot concatenate streams of different geometry")
+        cat = {
+            k: np.concatenate([getattr(s, k) for s in streams])
+            for k in (
+                "x", "y", "p", "t_us", "trigger_t_us", "trigger_p", "trigger_id"
+            )
+        }
+        out = EventStream(width=w, height=h, **cat)
+        torder = np.argsort(out.trigger_t_us, kind="stable")
+        out = dataclasses.replace(
+            out,
+            trigger_t_us=out.trigger_t_us[torder],
+            trigger_p=out.trigger_p[torder],
+            trigger_id=out.trigger_id[torder],
+        )
+        return out.sorted_by_time()
+
+    # --- .npz, the contract format -------------------------------------------------
+    def save_npz(self, path: str | os.PathLike) -> None:
+        """Write the DESIGN.md `.npz` layout atomically (whole file or nothing)."""
+        arrays = dict(
+            x=self.x,
+            y=self.y,
+            p=self.p,
+            t_us=self.t_us,
+            width=np.int64(self.width),
+            height=np.int64(self.height),
+        )
+        if self.trigger_t_us.size:
+            arrays.update(
+                trigger_t_us=self.trigger_t_us,
+                trigger_p=self.trigger_p,
+                trigger_id=self.trigger_id,
+            )
+        atomic_write(path, lambda f: np.savez(f, **arrays))
+
+    @classmethod
+    def load_npz(cls, path: str | os.PathLike) -> EventStream:
+        """Read an events `.npz`; a clear `ValueError` when keys or values are wrong."""
+        path = Path(path)
+        if not path.is_file():
+            raise ValueError(f"event file not found: {path}")
+        try:
+            data = np.load(path, allow_pickle=False)
+        except Exception as err:  # zipfile/pickle errors carry no useful type
+            raise ValueError(f"{path} is not a readable .npz file ({err})") from None
+        with data:
+            missing = [k for k in ("x", "y", "p", "t_us") if k not in data.files]
+            if missing:
+                raise ValueError(f"{path} lacks event keys {missing}")
+            cols = {k: np.asarray(data[k]) for k in ("x", "y", "p", "t_us")}
+            if "width" in data.files and "height" in data.files:
+                width, height = int(data["width"]), int(data["height"])
+            elif cols["x"].size:
+                width, height = int(cols["x"].max()) + 1, int(cols["y"].max()) + 1
+            else:
+                raise ValueError(f"{path} has no events and no width/height")
+            trig = {}
+            if "trigger_t_us" in data.files:
+                trig = {
+                    k: np.asarray(data[k])
+                    for k in ("trigger_t_us", "trigger_p", "trigger_id")
+                    if k in data.files
+                }
+                n = trig["trigger_t_us"].size
+                trig.setdefault("trigger_p", np.ones(n, np.uint8))
+                trig.setdefault("trigger_id", np.zeros(n, np.uint8))
+        if cols["p"].size and np.issubdtype(cols["p"].dtype, np.signedinteger):
+            if cols["p"].min() < 0:  # accept ±1 polarity and map it to 1/0
+                cols["p"] = (cols["p"] > 0).astype(np.uint8)
+        for k in ("x", "y", "t_us"):
+            if cols[k].size and np.issubdtype(cols[k].dtype, np.integer):
+                if cols[k].min() < 0:
+                    raise ValueError(f"{path}: negative values in {k!r}")
+        try:
+            stream = cls(width=width, height=height, **cols, **trig)
+        except ValueError as err:
+            raise ValueError(f"{path}: {err}") from None
+        if not stream.is_time_ordered():
+            raise ValueError(f"{path}: events are not in time order")
+        return stream
