@@ -1,0 +1,148 @@
+"""The sweeping rainbow: band profile, the A(λc) table and per-column time tables.
+
+The swept band has a Gaussian profile of the rig's FWHM with peak 1 (a wider slit passes
+more light, so the band's peak spectral radiance stays E(λ) while its power grows with the
+FWHM). A pixel of fine-grid reflectance $R_f$ receives
+
+$I(t) = g \\sum_f D_f E_f R_f \\int_{\\text{sub-bin } f} T(λ - λ_c(t))\\,dλ + c$,
+
+integrated exactly (erf differences) for spectra that are constant on each fine sub-bin.
+The gain $g$ normalises the peak over $λ_c$ of a reflectance-1 pixel to 1, so the constant
+light $c$ = `baseline_rel` and ε = `log_eps` are fractions of that peak, and only ratios
+matter — as for the sensor, which sees log-intensity.
+
+Everything here is a pure function of the rig's leaves, differentiable in FWHM, β, λ0,
+τx, D(λ), E(λ) and c. The band profile depends only on the band centre λc, so the
+response is tabulated once over λc (0.1 nm steps) and linearly interpolated: that is what
+makes a 1280-column sensor cheap (every column reads the same table).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import jax.scipy.special as jsp
+import numpy as np
+from jaxtyping import Array, Float
+
+from ._rig import Rig
+
+__all__ = [
+    "BandTable",
+    "band_table",
+    "lookup",
+    "fwhm_to_sigma",
+    "column_time_table",
+]
+
+_SQRT2 = np.sqrt(2.0)
+TABLE_STEP_NM = 0.1
+
+
+def fwhm_to_sigma(fwhm_nm):
+    """Gaussian σ from FWHM: $σ = \\mathrm{FWHM}/(2\\sqrt{2\\ln 2})$."""
+    return fwhm_nm / (2.0 * np.sqrt(2.0 * np.log(2.0)))
+
+
+def table_range_nm(rig: Rig, fwhm_bound_nm: float | None = None) -> tuple[float, float]:
+    """Static λc range of the table: the channel range widened by 3 FWHM.
+
+    Beyond it the band overlaps the channel range by less than $10^{-10}$ of its peak.
+    `fwhm_bound_nm` replaces the rig's (possibly traced) FWHM by a static bound.
+    """
+    fwhm = float(rig.fwhm_nm) if fwhm_bound_nm is None else float(fwhm_bound_nm)
+    margin = 3.0 * max(fwhm, 4.0)
+    return rig.grid.start_nm - margin, rig.grid.stop_nm + margin
+
+
+@dataclasses.dataclass(frozen=True)
+class BandTable:
+    """Response of each fine sub-bin (or channel) to a band centred at λc.
+
+    `values[i, f]` is the intensity a reflectance-1 sub-bin `f` contributes when the band
+    centre is `lo_nm + i * step_nm` (zero outside the table).
+    """
+
+    values: Float[Array, "n f"]
+    lo_nm: float
+    step_nm: float
+
+    def channels(self, sub: int) -> BandTable:
+        """Sum the fine sub-bins into channels: the reconstruction's A(λc) table."""
+        v = self.values
+        v = v.reshape(v.shape[0], v.shape[1] // sub, sub).sum(-1)
+        return BandTable(v, self.lo_nm, self.step_nm)
+
+
+jax.tree_util.register_dataclass(
+    BandTable, data_fields=["values"], meta_fields=["lo_nm", "step_nm"]
+)
+
+
+def band_table(rig: Rig, *, fwhm_bound_nm: float | None = None) -> BandTable:
+    """Tabulate the band response over λc for the rig's fine grid.
+
+    **Arguments:**
+
+    - `rig`: the rig (FWHM, D, E are read; differentiable).
+    - `fwhm_bound_nm`: a static upper bound on the FWHM, needed when the rig's FWHM is
+      traced (inside `jit`/`grad`) since the table's size must be static.
+
+    **Returns:** a :class:`BandTable` with `values` of shape `(n, M*sub)`.
+    """
+    lo, hi = table_range_nm(rig, fwhm_bound_nm)
+    n = int(np.ceil((hi - lo) / TABLE_STEP_NM)) + 1
+    centres = lo + TABLE_STEP_NM * jnp.arange(n, dtype=rig.fwhm_nm.dtype)
+    edges = jnp.asarray(rig.grid.fine_edges_nm, dtype=rig.fwhm_nm.dtype)
+    sigma = fwhm_to_sigma(rig.fwhm_nm)
+    # ∫ exp(-(λ-λc)²/2σ²) dλ over [e_f, e_f+1] = σ√(π/2) [erf(u_f+1) - erf(u_f)].
+    u = (edges[None, :] - centres[:, None]) / (sigma * _SQRT2)
+    cdf = jsp.erf(u)
+    overlap = sigma * np.sqrt(np.pi / 2.0) * (cdf[:, 1:] - cdf[:, :-1])
+    weight = rig.camera_response * rig.lamp
+    raw = overlap * weight[None, :]
+    gain = 1.0 / jnp.max(jnp.sum(raw, axis=1))
+    return BandTable(raw * gain, lo, TABLE_STEP_NM)
+
+
+def lookup(table: BandTable, centre_nm: Float[Array, "..."]) -> Float[Array, "... f"]:
+    """Linear interpolation of the table at band centres `centre_nm` (any shape).
+
+    Outside the table the response is zero. Differentiable in `centre_nm` (piecewise
+    linear, derivative exact between table nodes) and in the table values.
+    """
+    n = table.values.shape[0]
+    pos = (centre_nm - table.lo_nm) / table.step_nm
+    inside = (pos >= 0) & (pos <= n - 1)
+    pos = jnp.clip(pos, 0, n - 1)
+    i0 = jnp.clip(jnp.floor(pos).astype(jnp.int32), 0, n - 2)
+    frac = (pos - i0)[..., None]
+    v = table.values[i0] * (1 - frac) + table.values[i0 + 1] * frac
+    return jnp.where(inside[..., None], v, 0.0)
+
+
+def column_time_table(
+    rig: Rig,
+    table: BandTable,
+    t_us: Float[Array, " t"],
+    column_offset_us: Float[Array, ""],
+) -> Float[Array, "t f"]:
+    """A(t) for one column (paper Eq. 6): the table read at $λ_c(t + τ_x)$.
+
+    **Arguments:**
+
+    - `t_us`: times in µs (taken modulo the sweep period), shape `(t,)`.
+    - `column_offset_us`: τx of the column, µs.
+
+    **Returns:** shape `(t, f)` — one row per time, one column per table bin (fine
+    sub-bins, or channels for a channel table).
+    """
+    return lookup(table, rig.band_centre_nm(t_us, column_offset_us))
+
+
+def sweep_times_us(rig: Rig) -> Float[Array, " t"]:
+    """The simulator's time grid over one sweep: `samples_per_sweep + 1` points in µs."""
+    n = rig.samples_per_sweep
+    return jnp.arange(n + 1, dtype=rig.fwhm_nm.dtype) * (rig.period_us / n)

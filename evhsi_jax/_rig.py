@@ -1,0 +1,358 @@
+"""The rig: every physical parameter of the capture system, as one parameter pytree.
+
+A :class:`Rig` is an `eqx.Module`. Its array fields are the differentiable leaves that
+calibration and design studies fit (band FWHM, sweep coefficient β, band start λ0, sweep
+rate, column offsets τx, ON/OFF thresholds, refractory time, constant light c, the camera
+response D(λ) and lamp E(λ) on the fine grid). Sizes, grids and simulation-only settings
+are static. JSON I/O follows the contract of DESIGN.md: every key is optional and takes
+the default rig's value when left out.
+
+Timing model (documented choice, see README "Physics"): one sweep per mirror revolution,
+sweep period $P = 1/f$ with $f$ = `sweep_rate_hz`; the illumination pattern turns at
+$ω = π f$ rad/s (half the mirror speed, paper Eq. 1); column `x` sees the band centred at
+$λ_c(t) = λ_0 + β ω ((t \\bmod P) + τ_x)$. With the defaults (β = 185 nm/rad, λ0 = 360 nm)
+the band crosses 360→796 nm (the channels ± 2 FWHM) in 0.75 P, and the default offsets
+$τ_x = -0.15 P · x/(W-1)$ stagger the columns over another 0.15 P, leaving 0.1 P of dark
+time before the next sweep. At 30 sweeps/s a 17.5 nm band then takes about 1 ms to cross
+a pixel, so the 50 µs refractory period costs some events on the steepest flanks.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from ._events import atomic_write
+from ._spectra import (
+    SpectralGrid,
+    default_camera_response,
+    default_lamp_spectrum,
+    resample,
+)
+
+__all__ = ["Rig", "DEFAULTS", "default_column_offsets_us"]
+
+#: The paper's simulated rig (supplement 6.4), in the JSON contract's keys and units.
+DEFAULTS: dict[str, Any] = {
+    "channels": 72,
+    "channel_start_nm": 400.0,
+    "channel_stop_nm": 760.0,
+    "fine_step_nm": 1.0,
+    "fwhm_nm": 17.5,
+    "samples_per_sweep": 1200,
+    "sweep_rate_hz": 30.0,
+    "beta_nm_per_rad": 185.0,
+    "sweep_start_nm": 360.0,
+    "column_offsets_us": None,
+    "threshold_on": 0.15,
+    "threshold_off": 0.15,
+    "threshold_sigma": 0.01,
+    "refractory_us": 50.0,
+    "baseline_rel": 0.03,
+    "log_eps": 1e-5,
+    "noise_rate_hz": 0.0,
+    "reset_mode": "release",
+    "seed": 0,
+    "camera_response": None,
+    "lamp": None,
+}
+
+_DOC = {
+    "channels": "number of spectral channels M",
+    "channel_start_nm": "lower edge of the first channel, nm",
+    "channel_stop_nm": "upper edge of the last channel, nm",
+    "fine_step_nm": "simulator's spectral sub-bin width, nm",
+    "fwhm_nm": "FWHM of the swept narrow band, nm",
+    "samples_per_sweep": "time samples per sweep period",
+    "sweep_rate_hz": "sweeps per second (mirror revolutions per second)",
+    "beta_nm_per_rad": "sweep coefficient β, nm per radian of pattern rotation",
+    "sweep_start_nm": "band centre λ0 at t + τx = 0, nm",
+    "column_offsets_us": "τx per column, µs (null: default linear stagger)",
+    "threshold_on": "ON contrast threshold, log units",
+    "threshold_off": "OFF contrast threshold, log units",
+    "threshold_sigma": "per-pixel threshold spread (simulation only), log units",
+    "refractory_us": "refractory period, µs",
+    "baseline_rel": "constant light c, fraction of a white pixel's peak intensity",
+    "log_eps": "ε in log(I + ε), fraction of a white pixel's peak intensity",
+    "noise_rate_hz": "background noise events per pixel per second (simulation only)",
+    "reset_mode": "reference after an event: 'release' (level at end of refractory, "
+    "paper Eq. 2) or 'event' (previous reference ± C)",
+    "seed": "default PRNG seed for simulation",
+    "camera_response": "D(λ): null or {wavelengths_nm: [...], values: [...]}",
+    "lamp": "E(λ): null or {wavelengths_nm: [...], values: [...]}",
+}
+
+COLUMN_SPREAD = 0.15  # fraction of the sweep period over which the columns are staggered
+
+
+def default_column_offsets_us(width: int, sweep_rate_hz: float) -> np.ndarray:
+    """The default linear stagger $τ_x = -0.15 P · x/(W-1)$ in µs, shape `(W,)`."""
+    if width < 1:
+        raise ValueError(f"width must be >= 1, got {width}")
+    period_us = 1e6 / sweep_rate_hz
+    if width == 1:
+        return np.zeros(1)
+    return -COLUMN_SPREAD * period_us * np.arange(width) / (width - 1)
+
+
+def _scalar(v) -> Float[Array, ""]:
+    return jnp.asarray(v, dtype=float)
+
+
+def _positive(name, v, *, allow_zero=False):
+    try:
+        v = float(v)
+    except (TypeError, ValueError):
+        raise ValueError(f"rig key {name!r} must be a number, got {v!r}") from None
+    if not math.isfinite(v) or (v < 0 if allow_zero else v <= 0):
+        bound = ">= 0" if allow_zero else "> 0"
+        raise ValueError(f"rig key {name!r} must be finite and {bound}, got {v}")
+    return v
+
+
+def _spectrum_from_json(name, spec, grid: SpectralGrid, default_fn):
+    fine = grid.fine_centres_nm
+    if spec is None:
+        return default_fn(fine), None
+    if not isinstance(spec, dict) or set(spec) != {"wavelengths_nm", "values"}:
+        raise ValueError(
+            f"rig key {name!r} must be null or an object with 'wavelengths_nm' and "
+            "'values' lists"
+        )
+    wl = np.asarray(spec["wavelengths_nm"], dtype=np.float64)
+    vals = np.asarray(spec["values"], dtype=np.float64)
+    if wl.shape != vals.shape or wl.ndim != 1:
+        raise ValueError(f"rig key {name!r}: wavelengths_nm and values differ in length")
+    if np.any(vals < 0):
+        raise ValueError(f"rig key {name!r}: values must be >= 0")
+    out = resample(wl, vals, fine, name=f"rig key {name!r}")
+    if out.max() <= 0:
+        raise ValueError(f"rig key {name!r} is zero everywhere")
+    return out / out.max(), {"wavelengths_nm": wl.tolist(), "values": vals.tolist()}
+
+
+class Rig(eqx.Module):
+    """Parameters of the whole capture system (the paper's simulated rig by default).
+
+    Build with `Rig.from_dict({...})` / `Rig.load(path)` (validated, any key optional)
+    or `Rig()` for the defaults; update leaves with `eqx.tree_at`.
+    """
+
+    fwhm_nm: Float[Array, ""]
+    beta_nm_per_rad: Float[Array, ""]
+    sweep_start_nm: Float[Array, ""]
+    sweep_rate_hz: Float[Array, ""]
+    threshold_on: Float[Array, ""]
+    threshold_off: Float[Array, ""]
+    refractory_us: Float[Array, ""]
+    baseline_rel: Float[Array, ""]
+    log_eps: Float[Array, ""]
+    camera_response: Float[Array, " fine"]
+    lamp: Float[Array, " fine"]
+    column_offsets_us: Float[Array, " w"] | None
+    grid: SpectralGrid = eqx.field(static=True)
+    samples_per_sweep: int = eqx.field(static=True)
+    threshold_sigma: float = eqx.field(static=True)
+    noise_rate_hz: float = eqx.field(static=True)
+    seed: int = eqx.field(static=True)
+    reset_mode: str = eqx.field(static=True)
+    spectra_json: tuple = eqx.field(static=True)
+
+    def __init__(self, **overrides):
+        cfg = _validated({**DEFAULTS, **overrides})
+        self.grid = SpectralGrid(
+            cfg["channels"],
+            cfg["channel_start_nm"],
+            cfg["channel_stop_nm"],
+            cfg["fine_step_nm"],
+        )
+        d, d_json = _spectrum_from_json(
+            "camera_response", cfg["camera_response"], self.grid,
+            default_camera_response,
+        )
+        e, e_json = _spectrum_from_json(
+            "lamp", cfg["lamp"], self.grid, default_lamp_spectrum
+        )
+        self.spectra_json = (json.dumps(d_json), json.dumps(e_json))
+        self.camera_response = jnp.asarray(d, dtype=float)
+        self.lamp = jnp.asarray(e, dtype=float)
+        for k in (
+            "fwhm_nm", "beta_nm_per_rad", "sweep_start_nm", "sweep_rate_hz",
+            "threshold_on", "threshold_off", "refractory_us", "baseline_rel", "log_eps",
+        ):
+            setattr(self, k, _scalar(cfg[k]))
+        offs = cfg["column_offsets_us"]
+        self.column_offsets_us = None if offs is None else jnp.asarray(offs, float)
+        self.samples_per_sweep = cfg["samples_per_sweep"]
+        self.threshold_sigma = cfg["threshold_sigma"]
+        self.noise_rate_hz = cfg["noise_rate_hz"]
+        self.seed = cfg["seed"]
+        self.reset_mode = cfg["reset_mode"]
+
+    # --- derived quantities ----------------------------------------------------------
+    @property
+    def channels(self) -> int:
+        return self.grid.channels
+
+    @property
+    def wavelengths_nm(self) -> np.ndarray:
+        """Channel centres, shape `(M,)`."""
+        return self.grid.centres_nm
+
+    @property
+    def period_us(self) -> Float[Array, ""]:
+        """Sweep period $P = 10^6 / f$ in µs."""
+        return 1e6 / self.sweep_rate_hz
+
+    @property
+    def omega_rad_per_us(self) -> Float[Array, ""]:
+        """Pattern angular speed $ω = π f$, in rad/µs."""
+        return jnp.pi * self.sweep_rate_hz * 1e-6
+
+    def column_offsets(self, width: int) -> Float[Array, " w"]:
+        """τx for `width` columns in µs: the stored offsets or the default stagger."""
+        if self.column_offsets_us is None:
+            return jnp.asarray(
+                default_column_offsets_us(width, float(self.sweep_rate_hz)), float
+            )
+        if self.column_offsets_us.shape[0] != width:
+            raise ValueError(
+                f"rig has {self.column_offsets_us.shape[0]} column offsets but the "
+                f"sensor is {width} columns wide"
+            )
+        return self.column_offsets_us
+
+    def band_centre_nm(self, t_us, column_offset_us):
+        """$λ_c = λ_0 + βω((t \\bmod P) + τ_x)$ for times `t_us` within/after a sweep."""
+        local = jnp.mod(t_us, self.period_us)
+        return self.sweep_start_nm + self.beta_nm_per_rad * self.omega_rad_per_us * (
+            local + column_offset_us
+        )
+
+    # --- JSON ------------------------------------------------------------------------
+    @classmethod
+    def from_dict(cls, data: dict) -> Rig:
+        if not isinstance(data, dict):
+            raise ValueError("a rig file must hold a JSON object")
+        unknown = sorted(set(data) - set(DEFAULTS) - {"$schema", "comment"})
+        if unknown:
+            raise ValueError(
+                f"unknown rig key(s) {unknown}; known keys: {sorted(DEFAULTS)}"
+            )
+        data = {k: v for k, v in data.items() if k in DEFAULTS}
+        return cls(**data)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> Rig:
+        """Read a rig/calibration JSON file (keys left out take default values)."""
+        path = Path(path)
+        if not path.is_file():
+            raise ValueError(f"rig file not found: {path}")
+        try:
+            data = json.loads(path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as err:
+            raise ValueError(f"{path} is not valid JSON ({err})") from None
+        try:
+            return cls.from_dict(data)
+        except ValueError as err:
+            raise ValueError(f"{path}: {err}") from None
+
+    def to_dict(self, width: int | None = None) -> dict:
+        """Every key resolved; `column_offsets_us` filled in for `width` if given."""
+        g = self.grid
+        out: dict[str, Any] = {
+            "channels": g.channels,
+            "channel_start_nm": g.start_nm,
+            "channel_stop_nm": g.stop_nm,
+            "fine_step_nm": g.fine_width_nm,
+            "samples_per_sweep": self.samples_per_sweep,
+        }
+        for k in (
+            "fwhm_nm", "sweep_rate_hz", "beta_nm_per_rad", "sweep_start_nm",
+            "threshold_on", "threshold_off",
+        ):
+            out[k] = float(getattr(self, k))
+        if width is not None:
+            out["column_offsets_us"] = [float(v) for v in self.column_offsets(width)]
+        elif self.column_offsets_us is not None:
+            out["column_offsets_us"] = [float(v) for v in self.column_offsets_us]
+        else:
+            out["column_offsets_us"] = None
+        out["threshold_sigma"] = self.threshold_sigma
+        out["refractory_us"] = float(self.refractory_us)
+        out["baseline_rel"] = float(self.baseline_rel)
+        out["log_eps"] = float(self.log_eps)
+        out["noise_rate_hz"] = self.noise_rate_hz
+        out["reset_mode"] = self.reset_mode
+        out["seed"] = self.seed
+        out["camera_response"] = json.loads(self.spectra_json[0])
+        out["lamp"] = json.loads(self.spectra_json[1])
+        return out
+
+    def save(self, path: str | os.PathLike, width: int | None = None) -> None:
+        """Write the resolved rig as JSON, atomically."""
+        text = json.dumps(self.to_dict(width), indent=2) + "\n"
+        atomic_write(path, lambda f: f.write(text.encode()))
+
+    @staticmethod
+    def describe_keys() -> str:
+        """One line per JSON key with its unit (for `--help`)."""
+        return "\n".join(f"  {k:20s} {_DOC[k]} (default {DEFAULTS[k]})" for k in DEFAULTS)
+
+
+def _validated(cfg: dict) -> dict:
+    out = dict(cfg)
+    ch = cfg["channels"]
+    if isinstance(ch, bool) or not isinstance(ch, (int, float)) or int(ch) != ch:
+        raise ValueError(f"rig key 'channels' must be an integer, got {ch!r}")
+    out["channels"] = int(ch)
+    sps = cfg["samples_per_sweep"]
+    if isinstance(sps, bool) or not isinstance(sps, (int, float)) or int(sps) != sps:
+        raise ValueError(f"rig key 'samples_per_sweep' must be an integer, got {sps!r}")
+    if int(sps) < 16:
+        raise ValueError(f"rig key 'samples_per_sweep' must be >= 16, got {sps}")
+    out["samples_per_sweep"] = int(sps)
+    for k in (
+        "fwhm_nm", "sweep_rate_hz", "beta_nm_per_rad", "threshold_on", "threshold_off",
+        "log_eps", "fine_step_nm", "channel_start_nm", "channel_stop_nm",
+    ):
+        out[k] = _positive(k, cfg[k])
+    out["refractory_us"] = _positive("refractory_us", cfg["refractory_us"])
+    for k in ("threshold_sigma", "baseline_rel", "noise_rate_hz"):
+        out[k] = _positive(k, cfg[k], allow_zero=True)
+    try:
+        out["sweep_start_nm"] = float(cfg["sweep_start_nm"])
+    except (TypeError, ValueError):
+        raise ValueError("rig key 'sweep_start_nm' must be a number") from None
+    if not math.isfinite(out["sweep_start_nm"]):
+        raise ValueError("rig key 'sweep_start_nm' must be finite")
+    if cfg["reset_mode"] not in ("release", "event"):
+        raise ValueError(
+            f"rig key 'reset_mode' must be 'release' or 'event', got {cfg['reset_mode']!r}"
+        )
+    seed = cfg["seed"]
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ValueError(f"rig key 'seed' must be a non-negative integer, got {seed!r}")
+    offs = cfg["column_offsets_us"]
+    if offs is not None:
+        arr = np.asarray(offs)
+        if (
+            arr.ndim != 1
+            or arr.size == 0
+            or not np.issubdtype(arr.dtype, np.number)
+            or not np.all(np.isfinite(arr))
+        ):
+            raise ValueError(
+                "rig key 'column_offsets_us' must be null or a non-empty list of "
+                "finite numbers (µs), one per sensor column"
+            )
+        out["column_offsets_us"] = arr.astype(np.float64).tolist()
+    return out

@@ -1,0 +1,240 @@
+"""The `evhsi` command-line tool.
+
+Every sub-command validates its inputs and turns a user mistake into one line on stderr
+and exit status 2 (no traceback; set EVHSI_DEBUG=1 to see one). Output files are written
+whole or not at all.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+__all__ = ["main"]
+
+UNITS = """
+units: wavelengths in nm, times in µs (event timestamps are integer µs), thresholds
+in natural-log units, reflectance in [0, 1], constant light c as a fraction of a white
+pixel's peak intensity.
+"""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # one line, not usage + message
+        self.exit(2, f"evhsi: error: {message} (see `{self.prog} --help`)\n")
+
+
+def _fmt(cls):
+    return lambda prog: argparse.RawDescriptionHelpFormatter(prog, max_help_position=32)
+
+
+def _add_rig(p):
+    p.add_argument(
+        "--rig", metavar="RIG.json",
+        help="rig/calibration JSON; keys left out take the default (paper) rig's value",
+    )
+
+
+def _load_rig(path):
+    from ._rig import Rig
+
+    return Rig.load(path) if path else Rig()
+
+
+def _out_path(path: str, suffixes: tuple[str, ...], what: str) -> Path:
+    p = Path(path)
+    if p.suffix.lower() not in suffixes:
+        raise ValueError(f"{what} must end in {' or '.join(suffixes)}, got {path!r}")
+    if p.parent and not p.parent.exists():
+        raise ValueError(f"output folder does not exist: {p.parent}")
+    return p
+
+
+# --- sub-commands ---------------------------------------------------------------------
+def cmd_rig(args):
+    from ._scenes import parse_size
+
+    rig = _load_rig(args.rig)
+    h, w = parse_size(args.size) or (720, 1280)
+    print(json.dumps(rig.to_dict(width=w), indent=2))
+    return 0
+
+
+def cmd_simulate(args):
+    import jax.random as jr
+    import numpy as np
+
+    from ._cubefile import save_cube
+    from ._scenes import load_scene, parse_size
+    from ._simulate import simulate
+    from ._io import write_events
+
+    rig = _load_rig(args.rig)
+    out = _out_path(args.out, (".npz", ".raw"), "--out")
+    truth = _out_path(args.truth, (".npz",), "--truth") if args.truth else None
+    if args.sweeps < 1:
+        raise ValueError(f"--sweeps must be >= 1, got {args.sweeps}")
+    scene = load_scene(args.scene, parse_size(args.size))
+    seed = rig.seed if args.seed is None else args.seed
+    if seed < 0:
+        raise ValueError(f"--seed must be >= 0, got {seed}")
+    t0 = time.perf_counter()
+    events, info = simulate(
+        scene, rig, sweeps=args.sweeps, progress=not args.quiet, return_info=True,
+        key=jr.key(seed),
+    )
+    elapsed = time.perf_counter() - t0
+    write_events(out, events)
+    if truth is not None:
+        save_cube(
+            truth, scene.truth_cube(rig.grid), rig.wavelengths_nm,
+            labels=scene.labels, names=np.array(scene.names or [""], dtype=str),
+            threshold_on=info.threshold_on, threshold_off=info.threshold_off,
+        )
+    n_pix = scene.height * scene.width
+    print(
+        f"simulated {args.scene} {scene.height}x{scene.width}, {args.sweeps} sweep(s) in "
+        f"{elapsed:.1f} s: {len(events):,} events "
+        f"({len(events) / n_pix / args.sweeps:.1f} per pixel per sweep, "
+        f"{2 * len(events) / 1e6:.2f} MB at 16 bits/event) -> {out}"
+        + (f"; truth -> {truth}" if truth else "")
+    )
+    return 0
+
+
+def cmd_render(args):
+    from ._cubefile import load_cube
+    from ._render import cube_to_srgb, write_png
+
+    out = _out_path(args.out, (".png",), "--out")
+    data = load_cube(args.cube)
+    write_png(out, cube_to_srgb(data["cube"], data["wavelengths_nm"]))
+    print(f"wrote {out}")
+    return 0
+
+
+def cmd_info(args):
+    from ._io import describe_events
+
+    info = describe_events(args.events)
+    if args.json:
+        print(json.dumps(info, indent=2))
+    else:
+        for k, v in info.items():
+            print(f"{k:22s} {v}")
+    return 0
+
+
+def cmd_demo(args):
+    from ._demo import run_demo
+
+    run_demo(Path(args.out), size=args.size, quiet=args.quiet)
+    return 0
+
+
+# --- parser ---------------------------------------------------------------------------
+def build_parser() -> argparse.ArgumentParser:
+    from ._rig import Rig
+
+    top = _Parser(
+        prog="evhsi",
+        description="Event-based active hyperspectral imaging: simulate, reconstruct, "
+        "calibrate, evaluate.\n" + UNITS,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    sub = top.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    sub.required = True
+
+    p = sub.add_parser(
+        "simulate", help="simulate events of a scene under the sweeping rainbow",
+        description="Simulate the event camera watching a scene for N sweeps.\n"
+        "Built-in scenes: colorchecker, gray-chart, rainbow, metamers; or a scene .npz "
+        "with `reflectance` (H, W, L) in [0, 1] and `wavelengths_nm` (L,).\n" + UNITS,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--scene", required=True, help="built-in scene name or scene .npz")
+    p.add_argument("--out", required=True, metavar="EVENTS",
+                   help="events file: .npz (x, y, p, t_us [µs], width, height) or .raw "
+                   "(Prophesee EVT 3.0)")
+    p.add_argument("--truth", metavar="TRUTH.npz",
+                   help="also write the reflectance on the rig's channel grid (cube file)")
+    _add_rig(p)
+    p.add_argument("--sweeps", type=int, default=1, help="number of sweeps (default 1)")
+    p.add_argument("--seed", type=int, default=None,
+                   help="PRNG seed for threshold mismatch and noise (default: rig seed)")
+    p.add_argument("--size", metavar="HxW",
+                   help="image size in pixels for built-in scenes (e.g. 96x144)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_simulate)
+
+    p = sub.add_parser(
+        "rig", help="print the fully resolved rig as JSON",
+        description="Print every rig key, defaults filled in, with column_offsets_us "
+        "(µs) for the sensor width.\n\nkeys:\n" + Rig.describe_keys(),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    _add_rig(p)
+    p.add_argument("--size", metavar="HxW", help="sensor size (default 720x1280)")
+    p.set_defaults(func=cmd_rig)
+
+    p = sub.add_parser(
+        "render", help="render a cube to an sRGB PNG (CIE 1931, D65)",
+        description="Render a reflectance cube file to sRGB through the CIE 1931 2° "
+        "observer under D65 (colour-science).",
+    )
+    p.add_argument("cube", metavar="CUBE.npz")
+    p.add_argument("--out", required=True, metavar="PNG")
+    p.set_defaults(func=cmd_render)
+
+    p = sub.add_parser(
+        "info", help="summarise an events file (.npz, .raw EVT 2.0/3.0)",
+        description="Geometry, event count, duration (µs), rate (events/s), polarity "
+        "balance, triggers, bytes per event.",
+    )
+    p.add_argument("events", metavar="EVENTS")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=cmd_info)
+
+    p = sub.add_parser(
+        "demo", help="the main job on the built-in default scene (make demo)",
+        description="Simulate the ColorChecker with the paper's rig and report.",
+    )
+    p.add_argument("--out", default="out/demo", help="output folder (created)")
+    p.add_argument("--size", default="96x144", metavar="HxW", help="image size")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=cmd_demo)
+    return top
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        print("evhsi: interrupted", file=sys.stderr)
+        return 130
+    except (ValueError, OSError) as err:
+        if os.environ.get("EVHSI_DEBUG"):
+            raise
+        msg = " ".join(str(err).split()) or type(err).__name__
+        print(f"evhsi {args.command}: error: {msg}", file=sys.stderr)
+        return 2
+    except Exception as err:  # a bug, not a user mistake: still one line, say so
+        if os.environ.get("EVHSI_DEBUG"):
+            raise
+        msg = " ".join(str(err).split())
+        print(
+            f"evhsi {args.command}: internal error ({type(err).__name__}: {msg}); "
+            "rerun with EVHSI_DEBUG=1 for a traceback",
+            file=sys.stderr,
+        )
+        return 3
+
+
+if __name__ == "__main__":
+    sys.exit(main())
