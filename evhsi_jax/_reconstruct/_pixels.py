@@ -1,0 +1,119 @@
+"""Host-side bookkeeping: events → per-pixel padded event lists, grouped by count.
+
+A pixel's work must follow its own event count, not the busiest pixel's. Pixels are
+therefore grouped into *buckets* of padded length K ∈ {16, 32, 64, …}; each bucket is cut
+into chunks of a fixed number of pixels, so every chunk of a bucket has the same static
+shape and one compilation per bucket size serves the whole image. Pixels without events
+are not put in any bucket (they cost no solve).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from .._events import EventStream
+
+__all__ = ["PixelBatch", "group_pixels", "bucket_sizes"]
+
+MIN_BUCKET = 16
+
+
+def bucket_sizes(max_count: int) -> list[int]:
+    """Padded lengths 16, 32, 64, … up to the first one ≥ `max_count`."""
+    sizes = [MIN_BUCKET]
+    while sizes[-1] < max_count:
+        sizes.append(sizes[-1] * 2)
+    return sizes
+
+
+@dataclasses.dataclass(frozen=True)
+class PixelBatch:
+    """Padded event lists of `n` pixels, `k` slots each (one static shape).
+
+    - `pixel`: flat pixel index `y * width + x`, shape `(n,)` (-1 for padding rows).
+    - `column`: pixel column, shape `(n,)`.
+    - `t_us`: event times relative to the recording start, µs, float64, shape `(n, k)`.
+    - `polarity`: ±1 (0 in padding), int8, shape `(n, k)`.
+    - `mask`: True for real events, shape `(n, k)`.
+    - `count`: events per pixel, shape `(n,)`.
+    """
+
+    pixel: np.ndarray
+    column: np.ndarray
+    t_us: np.ndarray
+    polarity: np.ndarray
+    mask: np.ndarray
+    count: np.ndarray
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return self.t_us.shape
+
+
+def group_pixels(
+    events: EventStream,
+    *,
+    t_start_us: int | None = None,
+    chunk_pixels: int = 1024,
+    max_events: int | None = None,
+):
+    """Cut an event stream into per-pixel padded batches.
+
+    **Arguments:**
+
+    - `events`: the stream (time-ordered).
+    - `t_start_us`: recording start (the time the pixels' references were set); default
+      the first trigger if any, else the first event, rounded down to a sweep start by
+      the caller if needed.
+    - `chunk_pixels`: pixels per batch (the last batch of a bucket is padded).
+    - `max_events`: keep at most this many events per pixel (the earliest).
+
+    **Returns:** `(batches, counts, t0)` — a list of :class:`PixelBatch`, the event count
+    of every pixel `(H*W,)`, and the start time used.
+    """
+    w, h = events.width, events.height
+    if t_start_us is None:
+        if events.trigger_t_us.size:
+            t_start_us = int(events.trigger_t_us[0])
+        elif len(events):
+            t_start_us = int(events.t_us[0])
+        else:
+            t_start_us = 0
+    pix = events.y.astype(np.int64) * w + events.x.astype(np.int64)
+    order = np.argsort(pix, kind="stable")  # stable: time order kept within a pixel
+    counts = np.bincount(pix, minlength=w * h)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    use = counts if max_events is None else np.minimum(counts, max_events)
+    t_rel = (events.t_us[order] - t_start_us).astype(np.float64)
+    sgn = events.polarity_sign[order]
+    batches = []
+    active = np.nonzero(use > 0)[0]
+    if active.size == 0:
+        return batches, counts, t_start_us
+    sizes = bucket_sizes(int(use[active].max()))
+    lower = 0
+    for k in sizes:
+        members = active[(use[active] > lower) & (use[active] <= k)]
+        lower = k
+        for c0 in range(0, members.size, chunk_pixels):
+            sel = members[c0 : c0 + chunk_pixels]
+            n_pad = chunk_pixels - sel.size
+            slot = np.arange(k)
+            idx = starts[sel][:, None] + slot[None, :]
+            mask = slot[None, :] < use[sel][:, None]
+            idx = np.where(mask, idx, 0)
+            tt = np.where(mask, t_rel[idx], 0.0)
+            pp = np.where(mask, sgn[idx], 0).astype(np.int8)
+            batches.append(
+                PixelBatch(
+                    pixel=np.pad(sel, (0, n_pad), constant_values=-1),
+                    column=np.pad(sel % w, (0, n_pad)),
+                    t_us=np.pad(tt, ((0, n_pad), (0, 0))),
+                    polarity=np.pad(pp, ((0, n_pad), (0, 0))),
+                    mask=np.pad(mask, ((0, n_pad), (0, 0))),
+                    count=np.pad(use[sel], (0, n_pad)),
+                )
+            )
+    return batches, counts, t_start_us

@@ -1,0 +1,297 @@
+"""The per-pixel quadratic problem: null vectors, anti-drift and spectral priors → (Q, q).
+
+For one pixel with events $(τ_k, σ_k)$ and intensity $I(t) = a(t)\\cdot x + c'$
+($c' = c + ε$), the sensor model (paper Eq. 2, reference reset at the end of the
+refractory period η) gives for every event
+
+$a(τ_k)\\cdot x + c' = e^{σ_k C_{σ_k}} (a(ρ_k)\\cdot x + c')$,  $ρ_k = τ_{k-1} + η$,
+
+i.e. the augmented null vector $n_k = [a(τ_k) - e^{σ_k C} a(ρ_k);\\ c'(1 - e^{σ_k C})]$
+with $n_k \\cdot [x; 1] = 0$. The first event refers to the level at the recording start
+($ρ_1 = t_0$, where the band is off the pixel: the known baseline).
+
+**Normalisation.** Taken literally, row $k$ scales with the intensity $I(τ_k)$, so bright
+pixels and bright moments dominate and the anti-drift and spectral terms mean different
+things at different brightness. Every row is therefore divided by an estimate $\\hat I$
+of the intensity it speaks about, making each residual a relative (≈ log) error:
+$\\hat I_k = c' \\exp(\\sum_{i \\le k} σ_i C_{σ_i})$ from the events alone. The spectral
+term is divided by the pixel's brightness estimate $\\hat s = \\max_k \\hat I_k - c'$.
+
+**Anti-drift** (paper Eq. 17): in each gap $(ρ_k, τ_k)$ the intensity is kept close to a
+target $κ(s)\\,I(ρ_k)$, $s$ the fraction of the gap, sampled at `int_points` points and
+weighted by the gap length in units of τ₀ (the time the band needs to move one channel).
+Targets: `"linear"` — the paper's straight line between the two ends,
+$κ = 1 - s + s e^{σ_k C}$; `"peak"` — the same, except when the polarity flips (a rise
+followed by a fall, or the reverse), where the level is known to have kept moving the old
+way before turning: $κ = \\exp(C h(s))$, $h = σ_k s + σ_{k-1} b s(1-s)$, with $b$ chosen
+so the excursion peaks at `peak_height`·C. After the last event the level stays within
+±C of its reference: target κ = 1 until the recording end.
+
+**Spectral prior** (paper Eq. 19): $\\sum_{k \\ge M_{start}} (f_k \\cdot x)^2 / \\hat s^2$
+with the DCT-II vectors $f_k$.
+
+Everything is written for one pixel and vmapped.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float, Int
+
+from .._illumination import BandTable, lookup
+from .._rig import Rig
+
+__all__ = ["ProblemConfig", "spectral_prior_matrix", "pixel_system"]
+
+
+INT_TARGETS = ("linear", "peak", "flat", "flat-peak")
+
+
+@dataclasses.dataclass(frozen=True)
+class ProblemConfig:
+    """Weights and choices of the per-pixel problem (static, hashable).
+
+    - `alpha_int`: weight of the anti-drift term. The paper's 1.0 refers to its
+      un-normalised terms; with the normalisation here, 1e-3 was best on the `tcs`
+      training scene (see experiments/tune_weights.py), the events being exact
+      constraints and the priors only filling their null space.
+    - `alpha_spec`: weight of the spectral high-frequency penalty (tuned likewise).
+    - `m_start_frac`: first penalised DCT frequency as a fraction of M (paper: 0.3).
+    - `int_points`: anti-drift sample points per sweep (spread over the time the band
+      is on the pixel).
+    - `int_target`: `"linear"` (paper) or `"peak"` (see module docstring).
+    - `peak_height`: excursion at a polarity flip, in thresholds (for `"peak"`).
+    - `normalise`: divide rows by the intensity estimate (False: the literal paper).
+    - `nonneg`: enforce x ≥ 0 (False: unconstrained, for the ablation).
+    - `ridge`: relative Tikhonov term keeping Q positive definite.
+    """
+
+    alpha_int: float = 1e-3
+    alpha_spec: float = 1e-3
+    m_start_frac: float = 0.3
+    int_points: int = 72
+    int_target: str = "flat-peak"
+    peak_height: float = 0.5
+    normalise: bool = True
+    nonneg: bool = True
+    ridge: float = 1e-6
+
+    def __post_init__(self):
+        if self.int_target not in INT_TARGETS:
+            raise ValueError(f"int_target must be one of {INT_TARGETS}, got {self.int_target!r}")
+        if self.int_points < 1:
+            raise ValueError("int_points must be >= 1")
+        if min(self.alpha_int, self.alpha_spec, self.ridge) < 0:
+            raise ValueError("weights must be >= 0")
+        if not 0 < self.m_start_frac <= 1:
+            raise ValueError("m_start_frac must be in (0, 1]")
+
+
+def spectral_prior_matrix(m: int, m_start_frac: float) -> np.ndarray:
+    """$\\sum_{k=\\lceil f M \\rceil}^{M-1} f_k f_k^T$ with DCT-II rows
+    $f_k[j] = \\cos(π k (j + ½)/M)$, shape `(M, M)`."""
+    j = np.arange(m) + 0.5
+    ks = np.arange(int(np.ceil(m_start_frac * m)), m)
+    f = np.cos(np.pi * ks[:, None] * j[None, :] / m)
+    return f.T @ f
+
+
+def _peak_b(peak_height: float) -> float:
+    # h(s) = -s + b s(1-s) peaks at (b-1)^2 / (4b) = p  ⇒  b = 1+2p + sqrt((1+2p)^2 - 1).
+    u = 1.0 + 2.0 * peak_height
+    return u + np.sqrt(u * u - 1.0)
+
+
+def lit_interval_us(rig: Rig, column_offset_us):
+    """Local times (within a sweep) at which the band starts and stops touching the
+    channel range (band centre at channel start − 2 FWHM and stop + 2 FWHM)."""
+    speed = rig.beta_nm_per_rad * rig.omega_rad_per_us
+    lo = rig.grid.start_nm - 2.0 * rig.fwhm_nm
+    hi = rig.grid.stop_nm + 2.0 * rig.fwhm_nm
+    u_arr = (lo - rig.sweep_start_nm) / speed - column_offset_us
+    u_lv = (hi - rig.sweep_start_nm) / speed - column_offset_us
+    return u_arr, u_lv
+
+
+def pixel_system(
+    rig: Rig,
+    table: BandTable,
+    cfg: ProblemConfig,
+    t_us: Float[Array, " k"],
+    polarity: Int[Array, " k"],
+    mask: Bool[Array, " k"],
+    column_offset_us: Float[Array, ""],
+    threshold_on: Float[Array, ""],
+    threshold_off: Float[Array, ""],
+    t0_phase_us: Float[Array, ""],
+    sweeps: int,
+    *,
+    return_gram: bool = False,
+):
+    """Assemble one pixel's $Q$ (M×M) and $q$ (M) with objective $x^TQx + 2q^Tx$.
+
+    **Arguments:**
+
+    - `rig`, `table`: calibration; `table` is the channel table (`band_table(rig)
+      .channels(sub)`).
+    - `cfg`: a :class:`ProblemConfig`.
+    - `t_us`: event times relative to the recording start, µs, shape `(k,)` (padded at
+      the end; padding is ignored).
+    - `polarity`: ±1 per event (0 in padding); `mask`: real events.
+    - `column_offset_us`: τx of the pixel's column.
+    - `threshold_on`, `threshold_off`: the pixel's thresholds (log units).
+    - `t0_phase_us`: recording start modulo the sweep period.
+    - `sweeps`: number of sweeps the recording spans (static).
+    - `return_gram`: return the augmented Gram matrix `(M+1, M+1)` (priors added to its
+      x block) in place of Q.
+
+    **Returns:** `(Q, q, scale)` — shapes `(M, M)`, `(M,)`, and the brightness
+    estimate $\\hat s$ used by the spectral prior.
+    """
+    dtype = table.values.dtype
+    m = table.values.shape[1]
+    k = t_us.shape[0]
+    t0_phase_us = jnp.asarray(t0_phase_us, dtype)
+    c1 = rig.baseline_rel + rig.log_eps
+    log_c1 = jnp.log(c1)
+    eta = rig.refractory_us
+    period = rig.period_us
+    sgn = polarity.astype(dtype)
+    thr = jnp.where(polarity > 0, threshold_on, threshold_off)
+    step = jnp.where(mask, sgn * thr, 0.0)
+    ratio = jnp.exp(step)  # e^{σC}
+
+    def a_at(t_rel):
+        local = jnp.mod(t_rel + t0_phase_us, period)
+        return lookup(table, rig.band_centre_nm(local, column_offset_us))
+
+    u_arr, u_lv = lit_interval_us(rig, column_offset_us)
+    sweep_of = jnp.floor((t_us + t0_phase_us) / period)
+    sweep_start = sweep_of * period - t0_phase_us  # relative to the recording start
+    t_arr = sweep_start + u_arr
+
+    # Reference (release) times: the recording start for the first event, τ_{k-1} + η.
+    # t_rel[i] is the release before event i; t_rel[k] the one after the last slot.
+    t_rel = jnp.concatenate([jnp.zeros((1,), dtype), t_us + eta])
+    a_rel = a_at(t_rel)
+    t_ref, a_ref = t_rel[:k], a_rel[:k]
+    a_ev = a_at(t_us)
+    # Level estimates from the events alone: cumulative polarity, restarted at the
+    # baseline at each sweep (the band is off the pixel between sweeps).
+    # On a monotone flank the level also moves during each refractory period, by about
+    # the step times η / (gap after it): add that drift (release mode only).
+    new_sweep = jnp.concatenate([jnp.array([True]), sweep_of[1:] != sweep_of[:-1]])
+    prev_sgn = jnp.concatenate([jnp.zeros((1,), dtype), sgn[:-1]])
+    gap = jnp.maximum(t_us - t_ref, 1.0)
+    drift = jnp.where(
+        (prev_sgn == sgn) & ~new_sweep & (rig.reset_mode == "release"),
+        step * jnp.minimum(eta / gap, 3.0),
+        0.0,
+    )
+    seg = jnp.cumsum(new_sweep) - 1
+    cum = jnp.cumsum(step + drift)
+    base = jax.ops.segment_min(
+        jnp.where(new_sweep, cum - step, jnp.inf), seg, num_segments=k
+    )
+    level = log_c1 + cum - base[seg]
+    drift_next = jnp.concatenate([drift[1:], jnp.zeros((1,), dtype)])
+    i_hat = jnp.exp(level)
+    i_ref_hat = jnp.exp(jnp.where(new_sweep, log_c1, jnp.concatenate([log_c1[None], level[:-1]])))
+    s_hat = jnp.maximum(jnp.max(jnp.where(mask, i_hat, c1)) - c1, 1e-3 * c1)
+
+    norm = cfg.normalise
+    w_ev = jnp.where(mask, 1.0 / i_hat if norm else 1.0, 0.0)
+    ev_rows = jnp.concatenate(
+        [a_ev - ratio[:, None] * a_ref, (c1 * (1.0 - ratio))[:, None]], axis=1
+    ) * w_ev[:, None]
+
+    # Anti-drift rows on a time grid over each sweep's lit interval (when the band is
+    # on the pixel): each grid point lies in the gap between two references, and the
+    # intensity there is pulled towards the interpolation of the gap's two ends. A gap
+    # end is an event (its intensity a·x + c') or, before the band arrives / after the
+    # last event of the sweep, the baseline c' (a = 0).
+    speed = rig.beta_nm_per_rad * rig.omega_rad_per_us  # nm/µs
+    tau0 = rig.grid.width_nm / speed  # µs for the band to move one channel
+    g = cfg.int_points
+    sw = jnp.arange(sweeps, dtype=dtype)
+    t_arr_s = sw * period - t0_phase_us + u_arr
+    t_lv_s = sw * period - t0_phase_us + u_lv
+    spacing = (u_lv - u_arr) / g
+    frac = (jnp.arange(g, dtype=dtype) + 0.5) / g
+    t_g = (t_arr_s[:, None] + frac[None, :] * (u_lv - u_arr)).reshape(-1)  # (s*g,)
+    sw_g = jnp.repeat(sw, g)
+    t_arr_g = jnp.repeat(t_arr_s, g)
+    t_lv_g = jnp.repeat(t_lv_s, g)
+    t_sorted = jnp.where(mask, t_us, jnp.inf)
+    nxt = jnp.searchsorted(t_sorted, t_g, side="right")  # index of the next event
+    has_next = nxt < jnp.sum(mask)
+    nxt_c = jnp.minimum(nxt, k - 1)
+    prv = nxt - 1
+    prv_c = jnp.maximum(prv, 0)
+    # End B: the next event if it is in this sweep, else the baseline when the band
+    # leaves. End A: the release after the previous event if it happened in this
+    # sweep's lit interval, else the baseline when the band arrives.
+    b_event = has_next & (sweep_of[nxt_c] == sw_g)
+    b_time = jnp.where(b_event, t_us[nxt_c], t_lv_g)
+    a_event = (prv >= 0) & (t_rel[prv + 1] >= t_arr_g) & (sweep_of[prv_c] == sw_g)
+    a_time = jnp.where(a_event, t_rel[prv + 1], t_arr_g)
+    a_vec_a = jnp.where(a_event[:, None], a_rel[prv + 1], 0.0)
+    a_vec_b = jnp.where(b_event[:, None], a_ev[nxt_c], 0.0)
+    i_a = jnp.where(a_event, i_hat[prv_c] * jnp.exp(drift_next[prv_c]), c1)
+    i_b = jnp.where(b_event, i_hat[nxt_c], c1)
+    span = jnp.maximum(b_time - a_time, 1.0)
+    sg = jnp.clip((t_g - a_time) / span, 0.0, 1.0)
+    flip = a_event & b_event & (sgn[prv_c] * sgn[nxt_c] < 0)
+    a_g = a_at(t_g)
+    if cfg.int_target in ("peak", "flat-peak"):
+        bump_h = jnp.where(flip, sgn[prv_c] * jnp.expm1(cfg.peak_height * thr[prv_c]), 0.0)
+    else:
+        bump_h = jnp.zeros_like(sg)
+    bump = 4.0 * sg * (1.0 - sg) * bump_h
+    if cfg.int_target in ("flat", "flat-peak"):
+        # Interpolate the apparent reflectance (I - c') / F, F(t) = Σ_m a_m(t) the
+        # band's overlap with the channel range; a baseline end continues the other
+        # end's value (flat spectrum beyond the last event).
+        tiny = 1e-9
+        f_g = jnp.sum(a_g, axis=1)
+        f_a = jnp.maximum(jnp.sum(a_vec_a, axis=1), tiny)
+        f_b = jnp.maximum(jnp.sum(a_vec_b, axis=1), tiny)
+        wa_f = jnp.where(a_event, jnp.where(b_event, 1.0 - sg, 1.0), 0.0) + bump
+        wb_f = jnp.where(b_event, jnp.where(a_event, sg, 1.0), 0.0)
+        int_x = a_g - (wa_f * f_g / f_a)[:, None] * a_vec_a - (wb_f * f_g / f_b)[:, None] * a_vec_b
+        int_c = jnp.zeros_like(sg)
+        i_tgt = c1 + f_g * (wa_f * (i_a - c1) / f_a + wb_f * (i_b - c1) / f_b)
+        i_tgt = jnp.maximum(i_tgt, c1)
+    else:
+        wa = 1.0 - sg + bump
+        int_x = a_g - wa[:, None] * a_vec_a - sg[:, None] * a_vec_b
+        int_c = -c1 * bump
+        i_tgt = jnp.maximum(wa * i_a + sg * i_b, 1e-3 * c1)
+    w_int = jnp.sqrt(cfg.alpha_int * spacing / tau0) * jnp.ones_like(sg)
+    if norm:
+        w_int = w_int / i_tgt
+    int_rows = jnp.concatenate([int_x, int_c[:, None]], axis=1) * w_int[:, None]
+
+    rows = jnp.concatenate([ev_rows, int_rows], axis=0)
+    gram = rows.T @ rows
+    spec = jnp.asarray(spectral_prior_matrix(m, cfg.m_start_frac), dtype)
+    spec_w = cfg.alpha_spec / (s_hat**2 if norm else 1.0)
+    prior = spec_w * spec
+    ridge = cfg.ridge * (jnp.trace(gram[:m, :m] + prior) / m + 1e-30)
+    prior = prior + ridge * jnp.eye(m, dtype=dtype)
+    if return_gram:
+        return gram.at[:m, :m].add(prior), gram[:m, m], s_hat
+    return gram[:m, :m] + prior, gram[:m, m], s_hat
+
+
+def batch_system(rig, table, cfg, t_us, polarity, mask, column_offset_us,
+                 threshold_on, threshold_off, t0_phase_us, sweeps):
+    """:func:`pixel_system` over a batch of pixels (leading axis), tables shared."""
+    return jax.vmap(
+        pixel_system, in_axes=(None, None, None, 0, 0, 0, 0, 0, 0, None, None)
+    )(rig, table, cfg, t_us, polarity, mask, column_offset_us, threshold_on,
+      threshold_off, t0_phase_us, sweeps)
