@@ -1,5 +1,162 @@
-"""evhsi_jax: event-based active hyperspectral imaging in JAX."""
+"""evhsi_jax: event-based active hyperspectral imaging in JAX.
 
+Forward model (rainbow illumination, camera response, event triggering — exact and
+soft), event files, per-pixel box-QP reconstruction, metrics and rendering. The public
+API is re-exported here; implementation lives in private modules.
+"""
+
+from ._cubefile import load_cube as load_cube
+from ._cubefile import save_cube as save_cube
 from ._events import EventStream as EventStream
+from ._illumination import (
+    BandTable as BandTable,
+)
+from ._illumination import (
+    band_table as band_table,
+)
+from ._illumination import (
+    column_time_table as column_time_table,
+)
+from ._illumination import (
+    fwhm_to_sigma as fwhm_to_sigma,
+)
+from ._illumination import (
+    lookup as lookup,
+)
+from ._illumination import (
+    sweep_times_us as sweep_times_us,
+)
+from ._io import (
+    DecodeError as DecodeError,
+)
+from ._io import (
+    DecodeReport as DecodeReport,
+)
+from ._io import (
+    Sweeps as Sweeps,
+)
+from ._io import (
+    bandwidth_summary as bandwidth_summary,
+)
+from ._io import (
+    convert_events as convert_events,
+)
+from ._io import (
+    describe_events as describe_events,
+)
+from ._io import (
+    estimate_sweep_phase as estimate_sweep_phase,
+)
+from ._io import (
+    evt3_bytes as evt3_bytes,
+)
+from ._io import (
+    frame_bytes as frame_bytes,
+)
+from ._io import (
+    iter_events as iter_events,
+)
+from ._io import (
+    nominal_event_bytes as nominal_event_bytes,
+)
+from ._io import (
+    read_events as read_events,
+)
+from ._io import (
+    read_events_window as read_events_window,
+)
+from ._io import (
+    split_sweeps as split_sweeps,
+)
+from ._io import (
+    write_events as write_events,
+)
+from ._metrics import (
+    evaluate as evaluate,
+)
+from ._metrics import (
+    per_label_table as per_label_table,
+)
+from ._metrics import (
+    psnr_db as psnr_db,
+)
+from ._metrics import (
+    rms as rms,
+)
+from ._metrics import (
+    sam_deg as sam_deg,
+)
+from ._metrics import (
+    sam_map_deg as sam_map_deg,
+)
+from ._metrics import (
+    ssim as ssim,
+)
+from ._reconstruct import (
+    SOLVERS as SOLVERS,
+)
+from ._reconstruct import (
+    ProblemConfig as ProblemConfig,
+)
+from ._reconstruct import (
+    ReconstructionInfo as ReconstructionInfo,
+)
+from ._reconstruct import (
+    SolverSpec as SolverSpec,
+)
+from ._reconstruct import (
+    kkt_residual as kkt_residual,
+)
+from ._reconstruct import (
+    pixel_system as pixel_system,
+)
+from ._reconstruct import (
+    reconstruct as reconstruct,
+)
+from ._reconstruct import (
+    solver_spec as solver_spec,
+)
+from ._reconstruct import (
+    spectral_prior_matrix as spectral_prior_matrix,
+)
+from ._render import (
+    cube_to_srgb as cube_to_srgb,
+)
+from ._render import (
+    write_comparison_png as write_comparison_png,
+)
+from ._render import (
+    write_png as write_png,
+)
+from ._rig import Rig as Rig
+from ._scenes import BUILTIN_SCENES as BUILTIN_SCENES
+from ._scenes import Scene as Scene
+from ._scenes import load_scene as load_scene
+from ._sensor import exact_events_scan as exact_events_scan
+from ._sensor import soft_event_counts as soft_event_counts
+from ._simulate import (
+    SimulationInfo as SimulationInfo,
+)
+from ._simulate import (
+    simulate as simulate,
+)
+from ._simulate import (
+    threshold_maps as threshold_maps,
+)
+from ._spectra import (
+    SpectralGrid as SpectralGrid,
+)
+from ._spectra import (
+    band_integrate as band_integrate,
+)
+from ._spectra import (
+    default_camera_response as default_camera_response,
+)
+from ._spectra import (
+    default_lamp_spectrum as default_lamp_spectrum,
+)
+from ._spectra import (
+    resample as resample,
+)
 
 __version__ = "0.1.0"

@@ -28,7 +28,9 @@ def save_cube(path, cube, wavelengths_nm, **extra) -> None:
     wl = np.asarray(wavelengths_nm, dtype=np.float64)
     if cube.ndim != 3 or cube.shape[-1] != wl.size:
         raise ValueError(f"cube {cube.shape} does not match {wl.size} wavelengths")
-    arrays = dict(cube=cube, wavelengths_nm=wl, **{k: np.asarray(v) for k, v in extra.items()})
+    arrays = dict(
+        cube=cube, wavelengths_nm=wl, **{k: np.asarray(v) for k, v in extra.items()}
+    )
     atomic_write(path, lambda f: np.savez(f, **arrays))
 
 

@@ -84,7 +84,9 @@ class EventStream:
         for name, dtype in cast.items():
             value = np.asarray(getattr(self, name))
             if value.ndim != 1:
-                raise ValueError(f"event column {name!r} must be 1-D, got {value.shape}")
+                raise ValueError(
+                    f"event column {name!r} must be 1-D, got {value.shape}"
+                )
             if value.size and np.issubdtype(value.dtype, np.integer):
                 info = np.iinfo(dtype)
                 if value.min() < info.min or value.max() > info.max:
@@ -176,9 +178,7 @@ class EventStream:
             raise ValueError("cannot concatenate streams of different geometry")
         cat = {
             k: np.concatenate([getattr(s, k) for s in streams])
-            for k in (
-                "x", "y", "p", "t_us", "trigger_t_us", "trigger_p", "trigger_id"
-            )
+            for k in ("x", "y", "p", "t_us", "trigger_t_us", "trigger_p", "trigger_id")
         }
         out = EventStream(width=w, height=h, **cat)
         torder = np.argsort(out.trigger_t_us, kind="stable")

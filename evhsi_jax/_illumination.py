@@ -117,8 +117,9 @@ def lookup(table: BandTable, centre_nm: Float[Array, "..."]) -> Float[Array, "..
     pos = (centre_nm - table.lo_nm) / table.step_nm
     inside = (pos >= 0) & (pos <= n - 1)
     pos = jnp.clip(pos, 0, n - 1)
-    i0 = jnp.clip(jnp.floor(pos).astype(jnp.int32), 0, n - 2)
-    frac = (pos - i0)[..., None]
+    i0f = jnp.clip(jnp.floor(pos), 0, n - 2)
+    i0 = i0f.astype(jnp.int32)
+    frac = (pos - i0f)[..., None]
     v = table.values[i0] * (1 - frac) + table.values[i0 + 1] * frac
     return jnp.where(inside[..., None], v, 0.0)
 

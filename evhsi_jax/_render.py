@@ -82,8 +82,12 @@ def write_comparison_png(path, panels: dict, *, scale: int = 4) -> None:
 
     n = len(panels)
     h, w = next(iter(panels.values())).shape[:2]
-    fig, axes = plt.subplots(1, n, figsize=(n * max(2.5, w * scale / 100), 0.5 + max(
-        2.0, h * scale / 100)), squeeze=False)
+    fig, axes = plt.subplots(
+        1,
+        n,
+        figsize=(n * max(2.5, w * scale / 100), 0.5 + max(2.0, h * scale / 100)),
+        squeeze=False,
+    )
     for ax, (title, img) in zip(axes[0], panels.items()):
         ax.imshow(np.asarray(img), interpolation="nearest")
         ax.set_title(title)

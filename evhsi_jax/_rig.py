@@ -90,7 +90,9 @@ _DOC = {
     "lamp": "E(λ): null or {wavelengths_nm: [...], values: [...]}",
 }
 
-COLUMN_SPREAD = 0.15  # fraction of the sweep period over which the columns are staggered
+COLUMN_SPREAD = (
+    0.15  # fraction of the sweep period over which the columns are staggered
+)
 
 
 def default_column_offsets_us(width: int, sweep_rate_hz: float) -> np.ndarray:
@@ -130,7 +132,9 @@ def _spectrum_from_json(name, spec, grid: SpectralGrid, default_fn):
     wl = np.asarray(spec["wavelengths_nm"], dtype=np.float64)
     vals = np.asarray(spec["values"], dtype=np.float64)
     if wl.shape != vals.shape or wl.ndim != 1:
-        raise ValueError(f"rig key {name!r}: wavelengths_nm and values differ in length")
+        raise ValueError(
+            f"rig key {name!r}: wavelengths_nm and values differ in length"
+        )
     if np.any(vals < 0):
         raise ValueError(f"rig key {name!r}: values must be >= 0")
     out = resample(wl, vals, fine, name=f"rig key {name!r}")
@@ -175,7 +179,9 @@ class Rig(eqx.Module):
             cfg["fine_step_nm"],
         )
         d, d_json = _spectrum_from_json(
-            "camera_response", cfg["camera_response"], self.grid,
+            "camera_response",
+            cfg["camera_response"],
+            self.grid,
             default_camera_response,
         )
         e, e_json = _spectrum_from_json(
@@ -185,8 +191,15 @@ class Rig(eqx.Module):
         self.camera_response = jnp.asarray(d, dtype=float)
         self.lamp = jnp.asarray(e, dtype=float)
         for k in (
-            "fwhm_nm", "beta_nm_per_rad", "sweep_start_nm", "sweep_rate_hz",
-            "threshold_on", "threshold_off", "refractory_us", "baseline_rel", "log_eps",
+            "fwhm_nm",
+            "beta_nm_per_rad",
+            "sweep_start_nm",
+            "sweep_rate_hz",
+            "threshold_on",
+            "threshold_off",
+            "refractory_us",
+            "baseline_rel",
+            "log_eps",
         ):
             setattr(self, k, _scalar(cfg[k]))
         offs = cfg["column_offsets_us"]
@@ -276,8 +289,12 @@ class Rig(eqx.Module):
             "samples_per_sweep": self.samples_per_sweep,
         }
         for k in (
-            "fwhm_nm", "sweep_rate_hz", "beta_nm_per_rad", "sweep_start_nm",
-            "threshold_on", "threshold_off",
+            "fwhm_nm",
+            "sweep_rate_hz",
+            "beta_nm_per_rad",
+            "sweep_start_nm",
+            "threshold_on",
+            "threshold_off",
         ):
             out[k] = float(getattr(self, k))
         if width is not None:
@@ -305,7 +322,9 @@ class Rig(eqx.Module):
     @staticmethod
     def describe_keys() -> str:
         """One line per JSON key with its unit (for `--help`)."""
-        return "\n".join(f"  {k:20s} {_DOC[k]} (default {DEFAULTS[k]})" for k in DEFAULTS)
+        return "\n".join(
+            f"  {k:20s} {_DOC[k]} (default {DEFAULTS[k]})" for k in DEFAULTS
+        )
 
 
 def _validated(cfg: dict) -> dict:
@@ -321,8 +340,15 @@ def _validated(cfg: dict) -> dict:
         raise ValueError(f"rig key 'samples_per_sweep' must be >= 16, got {sps}")
     out["samples_per_sweep"] = int(sps)
     for k in (
-        "fwhm_nm", "sweep_rate_hz", "beta_nm_per_rad", "threshold_on", "threshold_off",
-        "log_eps", "fine_step_nm", "channel_start_nm", "channel_stop_nm",
+        "fwhm_nm",
+        "sweep_rate_hz",
+        "beta_nm_per_rad",
+        "threshold_on",
+        "threshold_off",
+        "log_eps",
+        "fine_step_nm",
+        "channel_start_nm",
+        "channel_stop_nm",
     ):
         out[k] = _positive(k, cfg[k])
     out["refractory_us"] = _positive("refractory_us", cfg["refractory_us"])

@@ -135,7 +135,9 @@ def parse_size(text: str | None) -> tuple[int, int] | None:
     try:
         h, w = (int(p) for p in parts)
     except ValueError:
-        raise ValueError(f"size must look like HxW (e.g. 96x144), got {text!r}") from None
+        raise ValueError(
+            f"size must look like HxW (e.g. 96x144), got {text!r}"
+        ) from None
     if h < 1 or w < 1 or h > 8192 or w > 8192:
         raise ValueError(f"size must be between 1x1 and 8192x8192, got {text!r}")
     return h, w
@@ -196,7 +198,9 @@ def metamer_pair(base: np.ndarray, wl: np.ndarray, period_nm: float, phase: floa
     import colour
 
     cmfs = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"]
-    xyz_bar = np.stack([np.interp(wl, cmfs.wavelengths, cmfs.values[:, i]) for i in range(3)])
+    xyz_bar = np.stack(
+        [np.interp(wl, cmfs.wavelengths, cmfs.values[:, i]) for i in range(3)]
+    )
     d65 = colour.SDS_ILLUMINANTS["D65"]
     s = np.interp(wl, d65.wavelengths, d65.values)
     inside = (wl >= 400) & (wl <= 760)
@@ -285,7 +289,10 @@ def load_scene(name_or_path: str | os.PathLike, size=None) -> Scene:
             missing = {"reflectance", "wavelengths_nm"} - set(data.files)
             if missing:
                 raise ValueError(f"scene file {path} lacks keys {sorted(missing)}")
-            refl, wl = np.asarray(data["reflectance"]), np.asarray(data["wavelengths_nm"])
+            refl, wl = (
+                np.asarray(data["reflectance"]),
+                np.asarray(data["wavelengths_nm"]),
+            )
     except ValueError:
         raise
     except Exception as err:

@@ -150,7 +150,9 @@ def soft_event_counts(
         # Release time of the blind mass, conditional on being blind: a mixture of the
         # still-blind pixels' old release time and the new events' ones.
         tot = pend + up + dn
-        mixed = pend * t_free + up * (tc_up + refractory_us) + dn * (tc_dn + refractory_us)
+        mixed = (
+            pend * t_free + up * (tc_up + refractory_us) + dn * (tc_dn + refractory_us)
+        )
         ok = tot > 1e-12
         t_free = jnp.where(ok, mixed / jnp.where(ok, tot, 1.0), t_free)
         pend = tot

@@ -15,7 +15,6 @@ import math
 from collections.abc import Sequence
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
@@ -114,8 +113,9 @@ def _windows(rig, table: BandTable, offsets, n_samples, dt, chunk_columns):
 
 
 @eqx.filter_jit
-def _chunk_kernel(rig, table_values, lo_nm, t_local, offsets, spectra, labels,
-                  thr_on, thr_off, state):
+def _chunk_kernel(
+    rig, table_values, lo_nm, t_local, offsets, spectra, labels, thr_on, thr_off, state
+):
     """Scan one chunk of columns over one sweep window. Shapes are static per run."""
     table = BandTable(table_values, lo_nm, 0.1)
     centres = rig.band_centre_nm(t_local[None, :], offsets[:, None])  # (c, t)
@@ -132,7 +132,12 @@ def _chunk_kernel(rig, table_values, lo_nm, t_local, offsets, spectra, labels,
     if state is None:
         state = initial_state(log_i[0])
     (fired, tc, up), state = exact_events_scan(
-        log_i, t_local, thr_on, thr_off, rig.refractory_us, state,
+        log_i,
+        t_local,
+        thr_on,
+        thr_off,
+        rig.refractory_us,
+        state,
         reset_mode=rig.reset_mode,
     )
     return fired, tc, up, state
@@ -209,7 +214,9 @@ def simulate(
     states = [None] * n_chunks
     out_cols = {k: [] for k in ("x", "y", "p", "t")}
     bar = tqdm(
-        total=sweeps * n_chunks, disable=not progress, unit="chunk",
+        total=sweeps * n_chunks,
+        disable=not progress,
+        unit="chunk",
         desc=f"simulate {h}x{w}x{sweeps}",
     )
     for s_idx, sc in enumerate(scenes):
@@ -226,9 +233,16 @@ def simulate(
                 r, t_free, pend = state
                 state = (r, t_free - period, pend)
             fired, tc, up, states[ci] = _chunk_kernel(
-                rig, tab_vals, fine.lo_nm, t_local, jnp.asarray(offsets[cols], dtype),
-                spectra, jnp.asarray(lab), jnp.asarray(thr_on[:, cols].T.reshape(-1)),
-                jnp.asarray(thr_off[:, cols].T.reshape(-1)), state,
+                rig,
+                tab_vals,
+                fine.lo_nm,
+                t_local,
+                jnp.asarray(offsets[cols], dtype),
+                spectra,
+                jnp.asarray(lab),
+                jnp.asarray(thr_on[:, cols].T.reshape(-1)),
+                jnp.asarray(thr_off[:, cols].T.reshape(-1)),
+                state,
             )
             fired = np.asarray(fired)
             step, pix = np.nonzero(fired)
@@ -254,9 +268,14 @@ def simulate(
     order = np.argsort(cat["t"], kind="stable")
     trig = np.round(np.arange(sweeps) * period).astype(np.int64)
     events = EventStream(
-        x=cat["x"][order], y=cat["y"][order], p=cat["p"][order],
-        t_us=cat["t"][order], width=w, height=h,
-        trigger_t_us=trig, trigger_p=np.ones(sweeps, np.uint8),
+        x=cat["x"][order],
+        y=cat["y"][order],
+        p=cat["p"][order],
+        t_us=cat["t"][order],
+        width=w,
+        height=h,
+        trigger_t_us=trig,
+        trigger_p=np.ones(sweeps, np.uint8),
         trigger_id=np.zeros(sweeps, np.uint8),
     )
     if not return_info:

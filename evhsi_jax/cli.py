@@ -34,7 +34,8 @@ def _fmt(cls):
 
 def _add_rig(p):
     p.add_argument(
-        "--rig", metavar="RIG.json",
+        "--rig",
+        metavar="RIG.json",
         help="rig/calibration JSON; keys left out take the default (paper) rig's value",
     )
 
@@ -69,9 +70,9 @@ def cmd_simulate(args):
     import numpy as np
 
     from ._cubefile import save_cube
+    from ._io import write_events
     from ._scenes import load_scene, parse_size
     from ._simulate import simulate
-    from ._io import write_events
 
     rig = _load_rig(args.rig)
     out = _out_path(args.out, (".npz", ".raw"), "--out")
@@ -84,16 +85,24 @@ def cmd_simulate(args):
         raise ValueError(f"--seed must be >= 0, got {seed}")
     t0 = time.perf_counter()
     events, info = simulate(
-        scene, rig, sweeps=args.sweeps, progress=not args.quiet, return_info=True,
+        scene,
+        rig,
+        sweeps=args.sweeps,
+        progress=not args.quiet,
+        return_info=True,
         key=jr.key(seed),
     )
     elapsed = time.perf_counter() - t0
     write_events(out, events)
     if truth is not None:
         save_cube(
-            truth, scene.truth_cube(rig.grid), rig.wavelengths_nm,
-            labels=scene.labels, names=np.array(scene.names or [""], dtype=str),
-            threshold_on=info.threshold_on, threshold_off=info.threshold_off,
+            truth,
+            scene.truth_cube(rig.grid),
+            rig.wavelengths_nm,
+            labels=scene.labels,
+            names=np.array(scene.names or [""], dtype=str),
+            threshold_on=info.threshold_on,
+            threshold_off=info.threshold_off,
         )
     n_pix = scene.height * scene.width
     print(
@@ -150,29 +159,45 @@ def build_parser() -> argparse.ArgumentParser:
     sub.required = True
 
     p = sub.add_parser(
-        "simulate", help="simulate events of a scene under the sweeping rainbow",
+        "simulate",
+        help="simulate events of a scene under the sweeping rainbow",
         description="Simulate the event camera watching a scene for N sweeps.\n"
         "Built-in scenes: colorchecker, gray-chart, rainbow, metamers; or a scene .npz "
         "with `reflectance` (H, W, L) in [0, 1] and `wavelengths_nm` (L,).\n" + UNITS,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--scene", required=True, help="built-in scene name or scene .npz")
-    p.add_argument("--out", required=True, metavar="EVENTS",
-                   help="events file: .npz (x, y, p, t_us [µs], width, height) or .raw "
-                   "(Prophesee EVT 3.0)")
-    p.add_argument("--truth", metavar="TRUTH.npz",
-                   help="also write the reflectance on the rig's channel grid (cube file)")
+    p.add_argument(
+        "--out",
+        required=True,
+        metavar="EVENTS",
+        help="events file: .npz (x, y, p, t_us [µs], width, height) or .raw "
+        "(Prophesee EVT 3.0)",
+    )
+    p.add_argument(
+        "--truth",
+        metavar="TRUTH.npz",
+        help="also write the reflectance on the rig's channel grid (cube file)",
+    )
     _add_rig(p)
     p.add_argument("--sweeps", type=int, default=1, help="number of sweeps (default 1)")
-    p.add_argument("--seed", type=int, default=None,
-                   help="PRNG seed for threshold mismatch and noise (default: rig seed)")
-    p.add_argument("--size", metavar="HxW",
-                   help="image size in pixels for built-in scenes (e.g. 96x144)")
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=None,
+        help="PRNG seed for threshold mismatch and noise (default: rig seed)",
+    )
+    p.add_argument(
+        "--size",
+        metavar="HxW",
+        help="image size in pixels for built-in scenes (e.g. 96x144)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_simulate)
 
     p = sub.add_parser(
-        "rig", help="print the fully resolved rig as JSON",
+        "rig",
+        help="print the fully resolved rig as JSON",
         description="Print every rig key, defaults filled in, with column_offsets_us "
         "(µs) for the sensor width.\n\nkeys:\n" + Rig.describe_keys(),
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -182,7 +207,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_rig)
 
     p = sub.add_parser(
-        "render", help="render a cube to an sRGB PNG (CIE 1931, D65)",
+        "render",
+        help="render a cube to an sRGB PNG (CIE 1931, D65)",
         description="Render a reflectance cube file to sRGB through the CIE 1931 2° "
         "observer under D65 (colour-science).",
     )
@@ -191,7 +217,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_render)
 
     p = sub.add_parser(
-        "info", help="summarise an events file (.npz, .raw EVT 2.0/3.0)",
+        "info",
+        help="summarise an events file (.npz, .raw EVT 2.0/3.0)",
         description="Geometry, event count, duration (µs), rate (events/s), polarity "
         "balance, triggers, bytes per event.",
     )
@@ -200,7 +227,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_info)
 
     p = sub.add_parser(
-        "demo", help="the main job on the built-in default scene (make demo)",
+        "demo",
+        help="the main job on the built-in default scene (make demo)",
         description="Simulate the ColorChecker with the paper's rig and report.",
     )
     p.add_argument("--out", default="out/demo", help="output folder (created)")

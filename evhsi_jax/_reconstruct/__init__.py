@@ -2,19 +2,37 @@
 
 from ._pipeline import (
     SOLVERS as SOLVERS,
+)
+from ._pipeline import (
     ReconstructionInfo as ReconstructionInfo,
+)
+from ._pipeline import (
     SolverSpec as SolverSpec,
+)
+from ._pipeline import (
     reconstruct as reconstruct,
+)
+from ._pipeline import (
     solver_spec as solver_spec,
 )
 from ._problem import (
     ProblemConfig as ProblemConfig,
+)
+from ._problem import (
     pixel_system as pixel_system,
+)
+from ._problem import (
     spectral_prior_matrix as spectral_prior_matrix,
 )
 from ._solvers import (
     apg as apg,
+)
+from ._solvers import (
     kkt_residual as kkt_residual,
+)
+from ._solvers import (
     projected_newton as projected_newton,
+)
+from ._solvers import (
     svd_nullvector as svd_nullvector,
 )

@@ -24,7 +24,9 @@ def boxcdqp(q_mat, q_vec, x0=None, *, maxiter: int = 500, tol: float = 1e-6):
     lower = jnp.zeros_like(q_vec)
     upper = jnp.full_like(q_vec, jnp.inf)
     init = jnp.zeros_like(q_vec) if x0 is None else jnp.maximum(x0, 0.0)
-    return solver.run(init, params_obj=(q_mat, q_vec), params_ineq=(lower, upper)).params
+    return solver.run(
+        init, params_obj=(q_mat, q_vec), params_ineq=(lower, upper)
+    ).params
 
 
 def boxosqp(q_mat, q_vec, x0=None, *, maxiter: int = 4000, tol: float = 1e-5):
@@ -34,5 +36,7 @@ def boxosqp(q_mat, q_vec, x0=None, *, maxiter: int = 4000, tol: float = 1e-5):
     eye = jnp.eye(m, dtype=q_vec.dtype)
     lower = jnp.zeros_like(q_vec)
     upper = jnp.full_like(q_vec, jnp.inf)
-    sol = solver.run(params_obj=(q_mat, q_vec), params_eq=eye, params_ineq=(lower, upper))
+    sol = solver.run(
+        params_obj=(q_mat, q_vec), params_eq=eye, params_ineq=(lower, upper)
+    )
     return jnp.maximum(sol.params.primal[0], 0.0)

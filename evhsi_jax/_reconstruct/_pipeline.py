@@ -103,12 +103,27 @@ def _no_event_answer(rig: Rig, m: int) -> float:
 
 
 @eqx.filter_jit
-def _solve_chunk(rig, table, cfg: ProblemConfig, spec: SolverSpec, sub: int,
-                 t_us, polarity, mask, offsets, thr_on, thr_off, phase, sweeps: int):
+def _solve_chunk(
+    rig,
+    table,
+    cfg: ProblemConfig,
+    spec: SolverSpec,
+    sub: int,
+    t_us,
+    polarity,
+    mask,
+    offsets,
+    thr_on,
+    thr_off,
+    phase,
+    sweeps: int,
+):
     """Assemble and solve a chunk of pixels; returns x (n, M) and KKT residuals."""
 
     def system(t, p, mk, off, con, coff):
-        return pixel_system(rig, table, cfg, t, p, mk, off, con, coff, phase, sweeps)[:2]
+        return pixel_system(rig, table, cfg, t, p, mk, off, con, coff, phase, sweeps)[
+            :2
+        ]
 
     def one_batch(args):
         q_mat, q_vec = jax.vmap(system)(*args)
@@ -136,8 +151,9 @@ def _solve_chunk(rig, table, cfg: ProblemConfig, spec: SolverSpec, sub: int,
 def _augmented_gram(rig, table, cfg, t, p, mk, off, con, coff, phase, sweeps):
     """$\\hat N^T \\hat N$ of the event rows alone (the paper's SVD system)."""
     bare = dataclasses.replace(cfg, alpha_int=0.0, alpha_spec=0.0, ridge=0.0)
-    q_mat, q_vec, _ = pixel_system(rig, table, bare, t, p, mk, off, con, coff, phase,
-                                   sweeps, return_gram=True)
+    q_mat, q_vec, _ = pixel_system(
+        rig, table, bare, t, p, mk, off, con, coff, phase, sweeps, return_gram=True
+    )
     return q_mat
 
 
@@ -192,27 +208,45 @@ def reconstruct(
     sub = max(1, min(sub_batch, chunk_pixels))
     chunk = sub * math.ceil(chunk_pixels / sub)
     batches, counts, _ = group_pixels(events, t_start_us=t_start_us, chunk_pixels=chunk)
-    dtype = jnp.zeros(()).dtype
+    dtype = rig.fwhm_nm.dtype  # float32 or float64: the rig decides
     table = band_table(rig).channels(rig.grid.sub)
-    thr_on = np.full(h * w, float(rig.threshold_on)) if threshold_on_map is None else (
-        _check_map(threshold_on_map, h, w, "threshold_on map"))
-    thr_off = np.full(h * w, float(rig.threshold_off)) if threshold_off_map is None else (
-        _check_map(threshold_off_map, h, w, "threshold_off map"))
+    thr_on = (
+        np.full(h * w, float(rig.threshold_on))
+        if threshold_on_map is None
+        else (_check_map(threshold_on_map, h, w, "threshold_on map"))
+    )
+    thr_off = (
+        np.full(h * w, float(rig.threshold_off))
+        if threshold_off_map is None
+        else (_check_map(threshold_off_map, h, w, "threshold_off map"))
+    )
 
     cube = np.full((h * w, m), _no_event_answer(rig, m), np.float32)
     kkt_all = np.full(h * w, np.nan, np.float32)
     phase = jnp.asarray(0.0, dtype)
-    bar = tqdm(total=int(np.count_nonzero(counts)), disable=not progress, unit="px",
-               desc=f"reconstruct ({spec.name})")
+    bar = tqdm(
+        total=int(np.count_nonzero(counts)),
+        disable=not progress,
+        unit="px",
+        desc=f"reconstruct ({spec.name})",
+    )
     for b in batches:
         valid = b.pixel >= 0
         pix = np.where(valid, b.pixel, 0)
         x, kkt = _solve_chunk(
-            rig, table, cfg, spec, sub,
-            jnp.asarray(b.t_us, dtype), jnp.asarray(b.polarity, jnp.int32),
-            jnp.asarray(b.mask), jnp.asarray(offsets_all[b.column], dtype),
-            jnp.asarray(thr_on[pix], dtype), jnp.asarray(thr_off[pix], dtype),
-            phase, sweeps,
+            rig,
+            table,
+            cfg,
+            spec,
+            sub,
+            jnp.asarray(b.t_us, dtype),
+            jnp.asarray(b.polarity, jnp.int32),
+            jnp.asarray(b.mask),
+            jnp.asarray(offsets_all[b.column], dtype),
+            jnp.asarray(thr_on[pix], dtype),
+            jnp.asarray(thr_off[pix], dtype),
+            phase,
+            sweeps,
         )
         x = np.asarray(x)
         cube[b.pixel[valid]] = x[valid]
@@ -243,4 +277,3 @@ def _check_map(a, h, w, name):
     if not np.all(np.isfinite(a)) or np.any(a <= 0):
         raise ValueError(f"{name} must be finite and > 0")
     return a.reshape(-1)
-

@@ -8,27 +8,43 @@ $a(τ_k)\\cdot x + c' = e^{σ_k C_{σ_k}} (a(ρ_k)\\cdot x + c')$,  $ρ_k = τ_{
 
 i.e. the augmented null vector $n_k = [a(τ_k) - e^{σ_k C} a(ρ_k);\\ c'(1 - e^{σ_k C})]$
 with $n_k \\cdot [x; 1] = 0$. The first event refers to the level at the recording start
-($ρ_1 = t_0$, where the band is off the pixel: the known baseline).
+($ρ_1 = t_0$, where the band is off the pixel: the known baseline c'), and the chain runs
+on across sweeps, so every event is an exact constraint.
 
 **Normalisation.** Taken literally, row $k$ scales with the intensity $I(τ_k)$, so bright
 pixels and bright moments dominate and the anti-drift and spectral terms mean different
 things at different brightness. Every row is therefore divided by an estimate $\\hat I$
-of the intensity it speaks about, making each residual a relative (≈ log) error:
-$\\hat I_k = c' \\exp(\\sum_{i \\le k} σ_i C_{σ_i})$ from the events alone. The spectral
-term is divided by the pixel's brightness estimate $\\hat s = \\max_k \\hat I_k - c'$.
+of the intensity it speaks about, making each residual a relative (≈ log) error. The
+estimate comes from the events alone: the cumulative polarity $c' \\exp(\\sum σ_i C)$,
+restarted at c' each sweep, plus the drift during each refractory period on monotone
+flanks (≈ step × η / following gap). The spectral term is divided by the pixel's
+brightness estimate $\\hat s^2$, $\\hat s = \\max_k \\hat I_k - c'$.
 
-**Anti-drift** (paper Eq. 17): in each gap $(ρ_k, τ_k)$ the intensity is kept close to a
-target $κ(s)\\,I(ρ_k)$, $s$ the fraction of the gap, sampled at `int_points` points and
-weighted by the gap length in units of τ₀ (the time the band needs to move one channel).
-Targets: `"linear"` — the paper's straight line between the two ends,
-$κ = 1 - s + s e^{σ_k C}$; `"peak"` — the same, except when the polarity flips (a rise
-followed by a fall, or the reverse), where the level is known to have kept moving the old
-way before turning: $κ = \\exp(C h(s))$, $h = σ_k s + σ_{k-1} b s(1-s)$, with $b$ chosen
-so the excursion peaks at `peak_height`·C. After the last event the level stays within
-±C of its reference: target κ = 1 until the recording end.
+**Anti-drift** (paper Eq. 17, generalised). The intensity is sampled at `int_points`
+times spread over each sweep's *lit interval* (the band overlapping the channel range),
+and at each time pulled towards a target built from the two ends of the gap it falls in:
+the release $ρ$ after the previous event (or the baseline c' if the band arrived after
+it) and the next event (or c' once the band has left, after the sweep's last event).
+Targets (`int_target`):
 
-**Spectral prior** (paper Eq. 19): $\\sum_{k \\ge M_{start}} (f_k \\cdot x)^2 / \\hat s^2$
-with the DCT-II vectors $f_k$.
+- `"linear"`: the paper's straight line in intensity between the ends;
+- `"peak"`: the same plus a bump of `peak_height`·C (relative) where the polarity flips,
+  since the level kept moving the old way before it turned (the straight line is biased
+  low at a maximum and high at a minimum);
+- `"flat"`: interpolate the *apparent reflectance* $(I - c')/F(t)$, $F(t) = \\sum_m
+  a_m(t)$ the band's overlap with the channel range, and continue it flat beyond the
+  sweep's first/last event — the intensity then falls off correctly as the band leaves
+  the channel range, where a straight line in intensity is badly biased;
+- `"flat-peak"` (default): `"flat"` with the flip bump.
+
+Each anti-drift row has weight $\\sqrt{α_{int} Δt/τ_0}$ (Δt the sampling step, τ₀ the
+time the band takes to move one channel), so the term approximates a time integral and
+its weight does not depend on the sampling. Measured on the `tcs` training scene:
+ablation in experiments/ablation.py.
+
+**Spectral prior** (paper Eq. 19): $α_{spec} \\sum_{k \\ge M_{start}} (f_k \\cdot x)^2 /
+\\hat s^2$ with the DCT-II vectors $f_k$; plus a ridge of `ridge` × mean diagonal, so Q is
+positive definite even for a pixel with a single event.
 
 Everything is written for one pixel and vmapped.
 """
@@ -82,7 +98,9 @@ class ProblemConfig:
 
     def __post_init__(self):
         if self.int_target not in INT_TARGETS:
-            raise ValueError(f"int_target must be one of {INT_TARGETS}, got {self.int_target!r}")
+            raise ValueError(
+                f"int_target must be one of {INT_TARGETS}, got {self.int_target!r}"
+            )
         if self.int_points < 1:
             raise ValueError("int_points must be >= 1")
         if min(self.alpha_int, self.alpha_spec, self.ridge) < 0:
@@ -171,8 +189,6 @@ def pixel_system(
 
     u_arr, u_lv = lit_interval_us(rig, column_offset_us)
     sweep_of = jnp.floor((t_us + t0_phase_us) / period)
-    sweep_start = sweep_of * period - t0_phase_us  # relative to the recording start
-    t_arr = sweep_start + u_arr
 
     # Reference (release) times: the recording start for the first event, τ_{k-1} + η.
     # t_rel[i] is the release before event i; t_rel[k] the one after the last slot.
@@ -200,14 +216,16 @@ def pixel_system(
     level = log_c1 + cum - base[seg]
     drift_next = jnp.concatenate([drift[1:], jnp.zeros((1,), dtype)])
     i_hat = jnp.exp(level)
-    i_ref_hat = jnp.exp(jnp.where(new_sweep, log_c1, jnp.concatenate([log_c1[None], level[:-1]])))
     s_hat = jnp.maximum(jnp.max(jnp.where(mask, i_hat, c1)) - c1, 1e-3 * c1)
 
     norm = cfg.normalise
     w_ev = jnp.where(mask, 1.0 / i_hat if norm else 1.0, 0.0)
-    ev_rows = jnp.concatenate(
-        [a_ev - ratio[:, None] * a_ref, (c1 * (1.0 - ratio))[:, None]], axis=1
-    ) * w_ev[:, None]
+    ev_rows = (
+        jnp.concatenate(
+            [a_ev - ratio[:, None] * a_ref, (c1 * (1.0 - ratio))[:, None]], axis=1
+        )
+        * w_ev[:, None]
+    )
 
     # Anti-drift rows on a time grid over each sweep's lit interval (when the band is
     # on the pixel): each grid point lies in the gap between two references, and the
@@ -248,7 +266,9 @@ def pixel_system(
     flip = a_event & b_event & (sgn[prv_c] * sgn[nxt_c] < 0)
     a_g = a_at(t_g)
     if cfg.int_target in ("peak", "flat-peak"):
-        bump_h = jnp.where(flip, sgn[prv_c] * jnp.expm1(cfg.peak_height * thr[prv_c]), 0.0)
+        bump_h = jnp.where(
+            flip, sgn[prv_c] * jnp.expm1(cfg.peak_height * thr[prv_c]), 0.0
+        )
     else:
         bump_h = jnp.zeros_like(sg)
     bump = 4.0 * sg * (1.0 - sg) * bump_h
@@ -262,7 +282,11 @@ def pixel_system(
         f_b = jnp.maximum(jnp.sum(a_vec_b, axis=1), tiny)
         wa_f = jnp.where(a_event, jnp.where(b_event, 1.0 - sg, 1.0), 0.0) + bump
         wb_f = jnp.where(b_event, jnp.where(a_event, sg, 1.0), 0.0)
-        int_x = a_g - (wa_f * f_g / f_a)[:, None] * a_vec_a - (wb_f * f_g / f_b)[:, None] * a_vec_b
+        int_x = (
+            a_g
+            - (wa_f * f_g / f_a)[:, None] * a_vec_a
+            - (wb_f * f_g / f_b)[:, None] * a_vec_b
+        )
         int_c = jnp.zeros_like(sg)
         i_tgt = c1 + f_g * (wa_f * (i_a - c1) / f_a + wb_f * (i_b - c1) / f_b)
         i_tgt = jnp.maximum(i_tgt, c1)
@@ -288,10 +312,32 @@ def pixel_system(
     return gram[:m, :m] + prior, gram[:m, m], s_hat
 
 
-def batch_system(rig, table, cfg, t_us, polarity, mask, column_offset_us,
-                 threshold_on, threshold_off, t0_phase_us, sweeps):
+def batch_system(
+    rig,
+    table,
+    cfg,
+    t_us,
+    polarity,
+    mask,
+    column_offset_us,
+    threshold_on,
+    threshold_off,
+    t0_phase_us,
+    sweeps,
+):
     """:func:`pixel_system` over a batch of pixels (leading axis), tables shared."""
     return jax.vmap(
         pixel_system, in_axes=(None, None, None, 0, 0, 0, 0, 0, 0, None, None)
-    )(rig, table, cfg, t_us, polarity, mask, column_offset_us, threshold_on,
-      threshold_off, t0_phase_us, sweeps)
+    )(
+        rig,
+        table,
+        cfg,
+        t_us,
+        polarity,
+        mask,
+        column_offset_us,
+        threshold_on,
+        threshold_off,
+        t0_phase_us,
+        sweeps,
+    )

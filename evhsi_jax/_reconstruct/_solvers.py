@@ -113,7 +113,9 @@ def unconstrained(q_mat, q_vec) -> Float[Array, " m"]:
 def _free_solve(q_mat, q_vec, free):
     """Minimise over the free variables with the others fixed at 0."""
     f = free.astype(q_mat.dtype)
-    q_red = q_mat * f[:, None] * f[None, :] + jnp.diag(1.0 - f) * jnp.max(jnp.diag(q_mat))
+    q_red = q_mat * f[:, None] * f[None, :] + jnp.diag(1.0 - f) * jnp.max(
+        jnp.diag(q_mat)
+    )
     c = jax.scipy.linalg.cho_factor(q_red, lower=True)
     return -jax.scipy.linalg.cho_solve(c, q_vec * f) * f
 
