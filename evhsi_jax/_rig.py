@@ -63,6 +63,7 @@ DEFAULTS: dict[str, Any] = {
     "seed": 0,
     "camera_response": None,
     "lamp": None,
+    "threshold_map": None,
 }
 
 _DOC = {
@@ -88,6 +89,8 @@ _DOC = {
     "seed": "default PRNG seed for simulation",
     "camera_response": "D(λ): null or {wavelengths_nm: [...], values: [...]}",
     "lamp": "E(λ): null or {wavelengths_nm: [...], values: [...]}",
+    "threshold_map": "null or a sibling .npz with per-pixel threshold_on/threshold_off "
+    "(H, W), log units (written by `evhsi calibrate`)",
 }
 
 COLUMN_SPREAD = (
@@ -169,6 +172,7 @@ class Rig(eqx.Module):
     seed: int = eqx.field(static=True)
     reset_mode: str = eqx.field(static=True)
     spectra_json: tuple = eqx.field(static=True)
+    threshold_map: str | None = eqx.field(static=True)
 
     def __init__(self, **overrides):
         cfg = _validated({**DEFAULTS, **overrides})
@@ -188,6 +192,8 @@ class Rig(eqx.Module):
             "lamp", cfg["lamp"], self.grid, default_lamp_spectrum
         )
         self.spectra_json = (json.dumps(d_json), json.dumps(e_json))
+        tmap = cfg["threshold_map"]
+        self.threshold_map = None if tmap is None else str(tmap)
         self.camera_response = jnp.asarray(d, dtype=float)
         self.lamp = jnp.asarray(e, dtype=float)
         for k in (
@@ -250,6 +256,32 @@ class Rig(eqx.Module):
             local + column_offset_us
         )
 
+    def load_threshold_maps(self, height: int, width: int):
+        """The per-pixel `(threshold_on, threshold_off)` maps named by `threshold_map`,
+        each `(H, W)` in log units, or `(None, None)` when the rig has none."""
+        if self.threshold_map is None:
+            return None, None
+        path = Path(self.threshold_map)
+        if not path.is_file():
+            raise ValueError(f"threshold map file not found: {path}")
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                on = np.asarray(data["threshold_on"], np.float64)
+                off = np.asarray(data["threshold_off"], np.float64)
+        except (KeyError, OSError, ValueError) as err:
+            raise ValueError(
+                f"{path} is not a threshold map (.npz with threshold_on and "
+                f"threshold_off): {err}"
+            ) from None
+        for name, arr in (("threshold_on", on), ("threshold_off", off)):
+            if arr.shape != (height, width):
+                raise ValueError(
+                    f"{path}: {name} map is {arr.shape}, the sensor is {(height, width)}"
+                )
+            if not np.all(np.isfinite(arr)) or np.any(arr <= 0):
+                raise ValueError(f"{path}: {name} map must be finite and > 0")
+        return on, off
+
     # --- JSON ------------------------------------------------------------------------
     @classmethod
     def from_dict(cls, data: dict) -> Rig:
@@ -273,6 +305,10 @@ class Rig(eqx.Module):
             data = json.loads(path.read_text())
         except (json.JSONDecodeError, UnicodeDecodeError) as err:
             raise ValueError(f"{path} is not valid JSON ({err})") from None
+        if isinstance(data, dict) and isinstance(data.get("threshold_map"), str):
+            tmap = Path(data["threshold_map"])
+            if not tmap.is_absolute():
+                data = {**data, "threshold_map": str(path.parent / tmap)}
         try:
             return cls.from_dict(data)
         except ValueError as err:
@@ -312,6 +348,7 @@ class Rig(eqx.Module):
         out["seed"] = self.seed
         out["camera_response"] = json.loads(self.spectra_json[0])
         out["lamp"] = json.loads(self.spectra_json[1])
+        out["threshold_map"] = self.threshold_map
         return out
 
     def save(self, path: str | os.PathLike, width: int | None = None) -> None:
@@ -367,6 +404,9 @@ def _validated(cfg: dict) -> dict:
     seed = cfg["seed"]
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ValueError(f"rig key 'seed' must be a non-negative integer, got {seed!r}")
+    tmap = cfg["threshold_map"]
+    if tmap is not None and not isinstance(tmap, str):
+        raise ValueError("rig key 'threshold_map' must be null or a file name")
     offs = cfg["column_offsets_us"]
     if offs is not None:
         arr = np.asarray(offs)

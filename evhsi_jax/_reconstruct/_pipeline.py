@@ -207,7 +207,9 @@ def reconstruct(
     sweeps = max(1, math.ceil((duration + 1.0) / period))
     sub = max(1, min(sub_batch, chunk_pixels))
     chunk = sub * math.ceil(chunk_pixels / sub)
-    batches, counts, _ = group_pixels(events, t_start_us=t_start_us, chunk_pixels=chunk)
+    batches, counts, _ = group_pixels(
+        events, t_start_us=t_start_us, chunk_pixels=chunk, min_chunk=sub
+    )
     dtype = rig.fwhm_nm.dtype  # float32 or float64: the rig decides
     table = band_table(rig).channels(rig.grid.sub)
     thr_on = (

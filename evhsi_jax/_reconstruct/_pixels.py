@@ -57,6 +57,7 @@ def group_pixels(
     *,
     t_start_us: int | None = None,
     chunk_pixels: int = 1024,
+    min_chunk: int | None = None,
     max_events: int | None = None,
 ):
     """Cut an event stream into per-pixel padded batches.
@@ -67,7 +68,10 @@ def group_pixels(
     - `t_start_us`: recording start (the time the pixels' references were set); default
       the first trigger if any, else the first event, rounded down to a sweep start by
       the caller if needed.
-    - `chunk_pixels`: pixels per batch (the last batch of a bucket is padded).
+    - `chunk_pixels`: pixels per batch.
+    - `min_chunk`: the last batch of a bucket is padded only to `min_chunk` times a
+      power of two (≤ `chunk_pixels`), not to a full chunk, so small buckets cost little;
+      default `chunk_pixels` (every batch the same size).
     - `max_events`: keep at most this many events per pixel (the earliest).
 
     **Returns:** `(batches, counts, t0)` — a list of :class:`PixelBatch`, the event count
@@ -99,7 +103,13 @@ def group_pixels(
         lower = k
         for c0 in range(0, members.size, chunk_pixels):
             sel = members[c0 : c0 + chunk_pixels]
-            n_pad = chunk_pixels - sel.size
+            size = chunk_pixels
+            if min_chunk and sel.size < chunk_pixels:
+                size = min_chunk
+                while size < sel.size:
+                    size *= 2
+                size = min(size, chunk_pixels)
+            n_pad = size - sel.size
             slot = np.arange(k)
             idx = starts[sel][:, None] + slot[None, :]
             mask = slot[None, :] < use[sel][:, None]

@@ -245,7 +245,7 @@ def pixel_system(
     t_arr_g = jnp.repeat(t_arr_s, g)
     t_lv_g = jnp.repeat(t_lv_s, g)
     t_sorted = jnp.where(mask, t_us, jnp.inf)
-    nxt = jnp.searchsorted(t_sorted, t_g, side="right")  # index of the next event
+    nxt = jnp.searchsorted(t_sorted, t_g, side="right", method="compare_all")
     has_next = nxt < jnp.sum(mask)
     nxt_c = jnp.minimum(nxt, k - 1)
     prv = nxt - 1

@@ -1,0 +1,115 @@
+"""`make demo`: the main job on the built-in default scene.
+
+Simulates the ColorChecker under the paper's rig (one sweep, per-pixel threshold
+mismatch and refractory period included), reports the event statistics and bandwidth,
+reconstructs the cube, prints the metrics table and writes the cube, the events, the
+truth and an sRGB comparison image.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import jax.random as jr
+import numpy as np
+
+from ._cubefile import save_cube
+from ._io import evt3_bytes, write_events
+from ._metrics import evaluate
+from ._reconstruct import reconstruct
+from ._render import cube_to_srgb, write_comparison_png
+from ._rig import Rig
+from ._scenes import load_scene, parse_size
+from ._simulate import simulate
+
+__all__ = ["run_demo"]
+
+
+def run_demo(out: Path, size: str = "96x144", quiet: bool = False) -> dict:
+    """Run the demo, writing into `out`; returns the metrics rows."""
+    out.mkdir(parents=True, exist_ok=True)
+    rig = Rig()
+    scene = load_scene("colorchecker", parse_size(size))
+    h, w = scene.height, scene.width
+    print(
+        f"evhsi demo: ColorChecker {h}x{w}, paper rig (72 ch 400-760 nm, FWHM "
+        f"{float(rig.fwhm_nm):g} nm, C = {float(rig.threshold_on):g} ± "
+        f"{rig.threshold_sigma:g}, refractory {float(rig.refractory_us):g} µs, "
+        f"{float(rig.sweep_rate_hz):g} sweeps/s)"
+    )
+    t0 = time.perf_counter()
+    events, info = simulate(
+        scene, rig, sweeps=1, progress=not quiet, return_info=True, key=jr.key(rig.seed)
+    )
+    t_sim = time.perf_counter() - t0
+    truth = scene.truth_cube(rig.grid)
+    write_events(out / "events.npz", events)
+    save_cube(
+        out / "truth.npz",
+        truth,
+        rig.wavelengths_nm,
+        labels=scene.labels,
+        names=np.array(scene.names, dtype=str),
+        threshold_on=info.threshold_on,
+        threshold_off=info.threshold_off,
+    )
+    n_pix = h * w
+    raw_bytes = evt3_bytes(events)
+    frame_bytes = rig.samples_per_sweep * n_pix
+    print(
+        f"\nsimulated in {t_sim:.1f} s: {len(events):,} events, "
+        f"{len(events) / n_pix:.1f} events/pixel/sweep "
+        f"(ON {np.mean(events.p):.0%})"
+    )
+    print(
+        f"bandwidth per sweep: EVT 3.0 file {raw_bytes / 1e3:,.1f} kB "
+        f"({8 * raw_bytes / max(len(events), 1):.1f} bits/event), nominal 16 bit/event "
+        f"{2 * len(events) / 1e3:,.1f} kB, 8-bit frames ({rig.samples_per_sweep}/sweep) "
+        f"{frame_bytes / 1e3:,.1f} kB -> events use "
+        f"{100 * 2 * len(events) / frame_bytes:.1f} % of the frame bandwidth"
+    )
+
+    rows = {}
+    cubes = {}
+    variants = [
+        ("nominal thresholds", None, None),
+        ("per-pixel thresholds*", info.threshold_on, info.threshold_off),
+    ]
+    for name, on, off in variants:
+        t0 = time.perf_counter()
+        cube = reconstruct(
+            events, rig, threshold_on_map=on, threshold_off_map=off, progress=not quiet
+        )
+        dt = time.perf_counter() - t0
+        rows[name] = {**evaluate(cube, truth), "seconds": dt}
+        cubes[name] = cube
+    save_cube(out / "cube.npz", cubes["nominal thresholds"], rig.wavelengths_nm)
+    save_cube(
+        out / "cube_per_pixel_thresholds.npz",
+        cubes["per-pixel thresholds*"],
+        rig.wavelengths_nm,
+    )
+    print(
+        f"\n{'reconstruction':24s} {'SAM deg':>8s} {'PSNR dB':>8s} {'SSIM':>7s} "
+        f"{'RMS':>7s} {'time s':>7s}"
+    )
+    for name, r in rows.items():
+        print(
+            f"{name:24s} {r['sam_deg']:8.2f} {r['psnr_db']:8.2f} {r['ssim']:7.3f} "
+            f"{r['rms']:7.4f} {r['seconds']:7.1f}"
+        )
+    print(
+        "* the simulated sensor's own per-pixel thresholds, i.e. what a per-pixel "
+        "threshold calibration provides;\n  with nominal thresholds the ±0.01 "
+        "mismatch scales each pixel's spectrum by up to ~±15 % (PSNR), the shape "
+        "(SAM) barely moves."
+    )
+    panels = {"truth": cube_to_srgb(truth, rig.wavelengths_nm)}
+    panels.update({k: cube_to_srgb(v, rig.wavelengths_nm) for k, v in cubes.items()})
+    write_comparison_png(out / "comparison.png", panels)
+    print(
+        f"\nwrote {out}/: events.npz, truth.npz, cube.npz, "
+        "cube_per_pixel_thresholds.npz, comparison.png"
+    )
+    return rows
