@@ -130,6 +130,7 @@ from ._render import (
 )
 from ._rig import Rig as Rig
 from ._scenes import BUILTIN_SCENES as BUILTIN_SCENES
+from ._scenes import parse_size as parse_size
 from ._scenes import Scene as Scene
 from ._scenes import load_scene as load_scene
 from ._sensor import exact_events_scan as exact_events_scan

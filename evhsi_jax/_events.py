@@ -14,6 +14,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+import numpy.typing as npt
 
 __all__ = ["EventStream", "atomic_write"]
 
@@ -59,19 +60,19 @@ class EventStream:
     - `trigger_t_us`, `trigger_p`, `trigger_id`: external trigger events (may be empty).
     """
 
-    x: np.ndarray
-    y: np.ndarray
-    p: np.ndarray
-    t_us: np.ndarray
+    x: npt.ArrayLike
+    y: npt.ArrayLike
+    p: npt.ArrayLike
+    t_us: npt.ArrayLike
     width: int
     height: int
-    trigger_t_us: np.ndarray = dataclasses.field(
+    trigger_t_us: npt.ArrayLike = dataclasses.field(
         default_factory=lambda: np.zeros(0, np.int64)
     )
-    trigger_p: np.ndarray = dataclasses.field(
+    trigger_p: npt.ArrayLike = dataclasses.field(
         default_factory=lambda: np.zeros(0, np.uint8)
     )
-    trigger_id: np.ndarray = dataclasses.field(
+    trigger_id: npt.ArrayLike = dataclasses.field(
         default_factory=lambda: np.zeros(0, np.uint8)
     )
 

@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import jax.scipy.special as jsp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from ._rig import Rig
 
@@ -39,6 +39,9 @@ __all__ = [
 
 _SQRT2 = np.sqrt(2.0)
 TABLE_STEP_NM = 0.1
+#: Table half-margin assumption (in FWHM units ×3) when the FWHM is traced and no bound
+#: is given: bands up to 50 nm FWHM are tabulated without truncation.
+TRACED_FWHM_BOUND_NM = 50.0
 
 
 def fwhm_to_sigma(fwhm_nm):
@@ -50,9 +53,16 @@ def table_range_nm(rig: Rig, fwhm_bound_nm: float | None = None) -> tuple[float,
     """Static λc range of the table: the channel range widened by 3 FWHM.
 
     Beyond it the band overlaps the channel range by less than $10^{-10}$ of its peak.
-    `fwhm_bound_nm` replaces the rig's (possibly traced) FWHM by a static bound.
+    `fwhm_bound_nm` replaces the rig's FWHM by a static bound; when the FWHM is traced
+    and no bound is given, 50 nm is assumed.
     """
-    fwhm = float(rig.fwhm_nm) if fwhm_bound_nm is None else float(fwhm_bound_nm)
+    if fwhm_bound_nm is not None:
+        fwhm = float(fwhm_bound_nm)
+    else:
+        try:
+            fwhm = float(rig.fwhm_nm)
+        except jax.errors.ConcretizationTypeError:  # traced (being differentiated)
+            fwhm = TRACED_FWHM_BOUND_NM
     margin = 3.0 * max(fwhm, 4.0)
     return rig.grid.start_nm - margin, rig.grid.stop_nm + margin
 
@@ -99,8 +109,15 @@ def band_table(rig: Rig, *, fwhm_bound_nm: float | None = None) -> BandTable:
     sigma = fwhm_to_sigma(rig.fwhm_nm)
     # ∫ exp(-(λ-λc)²/2σ²) dλ over [e_f, e_f+1] = σ√(π/2) [erf(u_f+1) - erf(u_f)].
     u = (edges[None, :] - centres[:, None]) / (sigma * _SQRT2)
-    cdf = jsp.erf(u)
-    overlap = sigma * np.sqrt(np.pi / 2.0) * (cdf[:, 1:] - cdf[:, :-1])
+    ua, ub = u[:, :-1], u[:, 1:]
+    # erf(ub) - erf(ua) cancels catastrophically in float32 in the tails (both near
+    # ±1; it even turns negative): difference the complementary function of the side
+    # the sub-bin lies on instead, accurate and >= 0 down to underflow.
+    upper = (ua + ub) > 0
+    diff = jnp.where(
+        upper, jsp.erfc(ua) - jsp.erfc(ub), jsp.erfc(-ub) - jsp.erfc(-ua)
+    )
+    overlap = sigma * np.sqrt(np.pi / 2.0) * diff
     weight = rig.camera_response * rig.lamp
     raw = overlap * weight[None, :]
     gain = 1.0 / jnp.max(jnp.sum(raw, axis=1))
@@ -128,7 +145,7 @@ def column_time_table(
     rig: Rig,
     table: BandTable,
     t_us: Float[Array, " t"],
-    column_offset_us: Float[Array, ""],
+    column_offset_us: Float[ArrayLike, ""],
 ) -> Float[Array, "t f"]:
     """A(t) for one column (paper Eq. 6): the table read at $λ_c(t + τ_x)$.
 

@@ -114,6 +114,8 @@ def _scalar(v) -> Float[Array, ""]:
 
 def _positive(name, v, *, allow_zero=False):
     try:
+        if isinstance(v, (bool, str, bytes)):  # JSON true / "17.5" are not numbers
+            raise TypeError
         v = float(v)
     except (TypeError, ValueError):
         raise ValueError(f"rig key {name!r} must be a number, got {v!r}") from None
@@ -238,10 +240,9 @@ class Rig(eqx.Module):
 
     def column_offsets(self, width: int) -> Float[Array, " w"]:
         """τx for `width` columns in µs: the stored offsets or the default stagger."""
-        if self.column_offsets_us is None:
-            return jnp.asarray(
-                default_column_offsets_us(width, float(self.sweep_rate_hz)), float
-            )
+        if self.column_offsets_us is None:  # traceable in the sweep rate
+            frac = jnp.asarray(default_column_offsets_us(width, 1e6), self.fwhm_nm.dtype)
+            return frac * self.period_us
         if self.column_offsets_us.shape[0] != width:
             raise ValueError(
                 f"rig has {self.column_offsets_us.shape[0]} column offsets but the "
@@ -284,7 +285,7 @@ class Rig(eqx.Module):
 
     # --- JSON ------------------------------------------------------------------------
     @classmethod
-    def from_dict(cls, data: dict) -> Rig:
+    def from_dict(cls, data: Any) -> Rig:
         if not isinstance(data, dict):
             raise ValueError("a rig file must hold a JSON object")
         unknown = sorted(set(data) - set(DEFAULTS) - {"$schema", "comment"})
@@ -334,9 +335,11 @@ class Rig(eqx.Module):
         ):
             out[k] = float(getattr(self, k))
         if width is not None:
-            out["column_offsets_us"] = [float(v) for v in self.column_offsets(width)]
+            offs = np.asarray(self.column_offsets(width), np.float64)
+            out["column_offsets_us"] = offs.tolist()
         elif self.column_offsets_us is not None:
-            out["column_offsets_us"] = [float(v) for v in self.column_offsets_us]
+            offs = np.asarray(self.column_offsets_us, np.float64)
+            out["column_offsets_us"] = offs.tolist()
         else:
             out["column_offsets_us"] = None
         out["threshold_sigma"] = self.threshold_sigma
@@ -392,6 +395,8 @@ def _validated(cfg: dict) -> dict:
     for k in ("threshold_sigma", "baseline_rel", "noise_rate_hz"):
         out[k] = _positive(k, cfg[k], allow_zero=True)
     try:
+        if isinstance(cfg["sweep_start_nm"], (bool, str, bytes)):
+            raise TypeError
         out["sweep_start_nm"] = float(cfg["sweep_start_nm"])
     except (TypeError, ValueError):
         raise ValueError("rig key 'sweep_start_nm' must be a number") from None

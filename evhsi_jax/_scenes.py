@@ -60,7 +60,7 @@ class Scene:
     palette: np.ndarray
     wavelengths_nm: np.ndarray
     labels: np.ndarray
-    names: tuple = ()
+    names: tuple | list = ()
 
     def __post_init__(self):
         pal = np.asarray(self.palette, dtype=np.float64)
@@ -284,19 +284,18 @@ def load_scene(name_or_path: str | os.PathLike, size=None) -> Scene:
         )
     if not path.is_file():
         raise ValueError(f"scene file not found: {path}")
+    keys = ("reflectance", "wavelengths_nm")
     try:
+        # numpy's own ValueErrors (a file that is not a zip, object arrays) are
+        # "unreadable file" too, not messages to pass on as they are.
         with np.load(path, allow_pickle=False) as data:
-            missing = {"reflectance", "wavelengths_nm"} - set(data.files)
-            if missing:
-                raise ValueError(f"scene file {path} lacks keys {sorted(missing)}")
-            refl, wl = (
-                np.asarray(data["reflectance"]),
-                np.asarray(data["wavelengths_nm"]),
-            )
-    except ValueError:
-        raise
+            arrays = {k: np.asarray(data[k]) for k in keys if k in data.files}
     except Exception as err:
         raise ValueError(f"{path} is not a readable .npz file ({err})") from None
+    missing = set(keys) - set(arrays)
+    if missing:
+        raise ValueError(f"scene file {path} lacks keys {sorted(missing)}")
+    refl, wl = arrays["reflectance"], arrays["wavelengths_nm"]
     if refl.ndim != 3:
         raise ValueError(f"{path}: reflectance must be (H, W, L), got {refl.shape}")
     if size is not None and tuple(size) != refl.shape[:2]:

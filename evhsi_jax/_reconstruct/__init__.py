@@ -31,8 +31,11 @@ from ._solvers import (
     kkt_residual as kkt_residual,
 )
 from ._solvers import (
-    projected_newton as projected_newton,
+    active_set as active_set,
+    active_set_batch as active_set_batch,
 )
 from ._solvers import (
     svd_nullvector as svd_nullvector,
 )
+from ._implicit import box_qp as box_qp, reconstruct_pixels as reconstruct_pixels
+from ._pixels import PixelBatch as PixelBatch, group_pixels as group_pixels

@@ -38,11 +38,6 @@ class SolverSpec:
     def solve(self, q_mat, q_vec, x0):
         if self.name == "apg":
             return _solvers.apg(q_mat, q_vec, x0, iters=self.iters)
-        if self.name == "pn":
-            return _solvers.projected_newton(q_mat, q_vec, x0, iters=self.iters)
-        if self.name == "pn-apg":  # exact Newton steps, then a short APG polish
-            x = _solvers.projected_newton(q_mat, q_vec, x0, iters=self.iters)
-            return _solvers.apg(q_mat, q_vec, x, iters=20)
         if self.name == "unconstrained":
             return _solvers.unconstrained(q_mat, q_vec)
         if self.name in ("boxcdqp", "boxosqp"):
@@ -61,9 +56,8 @@ class SolverSpec:
 #: Solver names of the CLI and their default budgets. `auto` is chosen from the
 #: speed-vs-error study (README): the fastest solver within 0.1° SAM of the reference.
 SOLVERS: dict[str, SolverSpec] = {
-    "active-set": SolverSpec("active-set", iters=20, tol=1e-5),
+    "active-set": SolverSpec("active-set", iters=48, tol=1e-6),
     "apg": SolverSpec("apg", iters=1000),
-    "pn": SolverSpec("pn", iters=8),
     "boxcdqp": SolverSpec("boxcdqp", iters=500, tol=1e-6),
     "boxosqp": SolverSpec("boxosqp", iters=4000, tol=1e-5),
     "svd": SolverSpec("svd"),

@@ -56,7 +56,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float, Int
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._illumination import BandTable, lookup
 from .._rig import Rig
@@ -84,6 +84,8 @@ class ProblemConfig:
     - `normalise`: divide rows by the intensity estimate (False: the literal paper).
     - `nonneg`: enforce x ≥ 0 (False: unconstrained, for the ablation).
     - `ridge`: relative Tikhonov term keeping Q positive definite.
+    - `spec_kind`: `"dct"` (paper) or `"d2"` (local second differences), see
+      :func:`spectral_prior_matrix`.
     """
 
     alpha_int: float = 1e-3
@@ -95,6 +97,7 @@ class ProblemConfig:
     normalise: bool = True
     nonneg: bool = True
     ridge: float = 1e-6
+    spec_kind: str = "dct"
 
     def __post_init__(self):
         if self.int_target not in INT_TARGETS:
@@ -105,17 +108,36 @@ class ProblemConfig:
             raise ValueError("int_points must be >= 1")
         if min(self.alpha_int, self.alpha_spec, self.ridge) < 0:
             raise ValueError("weights must be >= 0")
+        if self.spec_kind not in ("dct", "d2"):
+            raise ValueError(f"spec_kind must be 'dct' or 'd2', got {self.spec_kind!r}")
         if not 0 < self.m_start_frac <= 1:
             raise ValueError("m_start_frac must be in (0, 1]")
 
 
-def spectral_prior_matrix(m: int, m_start_frac: float) -> np.ndarray:
-    """$\\sum_{k=\\lceil f M \\rceil}^{M-1} f_k f_k^T$ with DCT-II rows
-    $f_k[j] = \\cos(π k (j + ½)/M)$, shape `(M, M)`."""
+def spectral_prior_matrix(m: int, m_start_frac: float, kind: str = "dct") -> np.ndarray:
+    """The spectral prior's Gram matrix, shape `(M, M)`.
+
+    - `"dct"` (paper Eq. 19): $\\sum_{k=\\lceil f M \\rceil}^{M-1} f_k f_k^T$ with DCT-II
+      rows $f_k[j] = \\cos(π k (j + ½)/M)$ — a projector on the high frequencies. It is
+      non-local: next to a genuine narrow peak it can lower its cost by adding a smooth
+      bump far away.
+    - `"d2"`: squared second differences $\\sum_j (x_{j-1} - 2x_j + x_{j+1})^2$,
+      scaled by $(M/(π \\lceil f M \\rceil))^4$ so that it matches the DCT penalty at
+      the cut-off frequency — local (banded), so a peak is only penalised where it is.
+    """
     j = np.arange(m) + 0.5
-    ks = np.arange(int(np.ceil(m_start_frac * m)), m)
-    f = np.cos(np.pi * ks[:, None] * j[None, :] / m)
-    return f.T @ f
+    k0 = int(np.ceil(m_start_frac * m))
+    if kind == "dct":
+        ks = np.arange(k0, m)
+        f = np.cos(np.pi * ks[:, None] * j[None, :] / m)
+        return f.T @ f
+    if kind == "d2":
+        d2 = np.zeros((m - 2, m))
+        for r in range(m - 2):
+            d2[r, r : r + 3] = (1.0, -2.0, 1.0)
+        # A cosine of frequency k has |second difference| ≈ (πk/M)² times its amplitude.
+        return d2.T @ d2 * (m / (np.pi * max(k0, 1))) ** 4 * (m / 2)
+    raise ValueError(f"unknown spectral prior kind {kind!r}")
 
 
 def _peak_b(peak_height: float) -> float:
@@ -142,10 +164,10 @@ def pixel_system(
     t_us: Float[Array, " k"],
     polarity: Int[Array, " k"],
     mask: Bool[Array, " k"],
-    column_offset_us: Float[Array, ""],
-    threshold_on: Float[Array, ""],
-    threshold_off: Float[Array, ""],
-    t0_phase_us: Float[Array, ""],
+    column_offset_us: Float[ArrayLike, ""],
+    threshold_on: Float[ArrayLike, ""],
+    threshold_off: Float[ArrayLike, ""],
+    t0_phase_us: Float[ArrayLike, ""],
     sweeps: int,
     *,
     return_gram: bool = False,
@@ -246,7 +268,7 @@ def pixel_system(
     t_lv_g = jnp.repeat(t_lv_s, g)
     t_sorted = jnp.where(mask, t_us, jnp.inf)
     nxt = jnp.searchsorted(t_sorted, t_g, side="right", method="compare_all")
-    has_next = nxt < jnp.sum(mask)
+    has_next = nxt < jnp.sum(mask).astype(nxt.dtype)
     nxt_c = jnp.minimum(nxt, k - 1)
     prv = nxt - 1
     prv_c = jnp.maximum(prv, 0)
@@ -302,7 +324,7 @@ def pixel_system(
 
     rows = jnp.concatenate([ev_rows, int_rows], axis=0)
     gram = rows.T @ rows
-    spec = jnp.asarray(spectral_prior_matrix(m, cfg.m_start_frac), dtype)
+    spec = jnp.asarray(spectral_prior_matrix(m, cfg.m_start_frac, cfg.spec_kind), dtype)
     spec_w = cfg.alpha_spec / (s_hat**2 if norm else 1.0)
     prior = spec_w * spec
     ridge = cfg.ridge * (jnp.trace(gram[:m, :m] + prior) / m + 1e-30)

@@ -7,8 +7,9 @@ Every solver here is written for one pixel and batched by the caller (vmap insid
   with gradient-based adaptive restart (O'Donoghue & Candès 2015) and a step from a power
   iteration; a fixed iteration budget (static), so a batch never waits for its slowest
   pixel.
-- :func:`projected_newton` — a primal active-set method with exact Newton steps on the
-  free variables (Cholesky); converges in a few iterations to the exact optimum.
+- :func:`active_set` / :func:`active_set_batch` — the primal active-set method with
+  exact (Cholesky) subspace solves, started from the clipped unconstrained solution;
+  the batch version only iterates where a bound is violated. Exact to rounding.
 - :func:`unconstrained` — the Cholesky solution without the bound (for the ablation).
 - :func:`svd_nullvector` — the paper's baseline: the right singular vector of the
   augmented system with the smallest singular value, normalised by its last entry.
@@ -23,7 +24,8 @@ from jaxtyping import Array, Float
 
 __all__ = [
     "apg",
-    "projected_newton",
+    "active_set",
+    "active_set_batch",
     "unconstrained",
     "svd_nullvector",
     "kkt_residual",
@@ -113,45 +115,108 @@ def unconstrained(q_mat, q_vec) -> Float[Array, " m"]:
 def _free_solve(q_mat, q_vec, free):
     """Minimise over the free variables with the others fixed at 0."""
     f = free.astype(q_mat.dtype)
-    q_red = q_mat * f[:, None] * f[None, :] + jnp.diag(1.0 - f) * jnp.max(
-        jnp.diag(q_mat)
-    )
+    big = jnp.max(jnp.abs(jnp.diag(q_mat)))
+    q_red = q_mat * f[:, None] * f[None, :] + jnp.diag((1.0 - f) * big)
     c = jax.scipy.linalg.cho_factor(q_red, lower=True)
     return -jax.scipy.linalg.cho_solve(c, q_vec * f) * f
 
 
-def projected_newton(
+def active_set_step(q_mat, q_vec, state, tol):
+    """One iteration of the primal active-set method for x ≥ 0 (Nocedal & Wright §16.5).
+
+    `state = (x, fixed, done)`: a feasible point, the working set (variables held at
+    0) and a convergence flag. The minimiser p over the free variables is computed by
+    Cholesky. If p is feasible, x = p and the fixed variable with the most negative
+    gradient (below −tol, relative) is released — none left means the KKT conditions
+    hold. Otherwise x moves towards p until the first free variable reaches 0, which
+    joins the working set. The objective never increases; at most one working-set
+    change per step.
+    """
+    x, fixed, done = state
+    p = _free_solve(q_mat, q_vec, ~fixed)
+    shrinking = ~fixed & (p < 0)
+    feasible = ~jnp.any(shrinking)
+    # Blocked step: α = min over shrinking i of x_i / (x_i - p_i).
+    ratio = jnp.where(shrinking, x / jnp.where(shrinking, x - p, 1.0), jnp.inf)
+    j_block = jnp.argmin(ratio)
+    alpha = jnp.clip(ratio[j_block], 0.0, 1.0)
+    x_block = jnp.maximum(x + alpha * (p - x), 0.0).at[j_block].set(0.0)
+    fixed_block = fixed.at[j_block].set(True)
+    # Feasible step: x = p, then release the most negative multiplier.
+    g = q_mat @ p + q_vec
+    scale = jnp.max(jnp.abs(jnp.diag(q_mat))) * jnp.maximum(jnp.max(jnp.abs(p)), 1e-30)
+    cand = fixed & (g < -tol * scale)
+    j_rel = jnp.argmin(jnp.where(cand, g, jnp.inf))
+    fixed_rel = jnp.where(jnp.any(cand), fixed.at[j_rel].set(False), fixed)
+    new_x = jnp.where(feasible, p, x_block)
+    new_fixed = jnp.where(feasible, fixed_rel, fixed_block)
+    new_done = feasible & ~jnp.any(cand)
+    return (
+        jnp.where(done, x, new_x),
+        jnp.where(done, fixed, new_fixed),
+        done | new_done,
+    )
+
+
+def _start(x0):
+    x = jnp.maximum(x0, 0.0)
+    return x, x <= 0, jnp.zeros((), bool)
+
+
+def active_set(
     q_mat: Float[Array, "m m"],
     q_vec: Float[Array, " m"],
     x0: Float[Array, " m"] | None = None,
     *,
-    iters: int = 6,
+    iters: int = 24,
+    tol: float = 1e-9,
 ) -> Float[Array, " m"]:
-    """Primal active-set iterations with exact Newton steps on the free set.
+    """The primal active-set method for one pixel with a fixed step budget (static),
+    started from the clipped unconstrained solution (or from `x0`, clipped)."""
+    state = _start(unconstrained(q_mat, q_vec) if x0 is None else x0)
+    state = jax.lax.fori_loop(
+        0, iters, lambda _, st: active_set_step(q_mat, q_vec, st, tol), state
+    )
+    return state[0]
 
-    Each iteration: the free set is {x > 0} ∪ {gradient < 0}; solve the QP restricted
-    to it exactly (Cholesky); move from x towards that point as far as the bound allows,
-    stopping at the first variable that reaches 0 (which leaves the free set). From a
-    feasible start the objective never increases; at a fixed point the KKT conditions
-    hold. `iters` (static) bounds the work.
+
+def active_set_batch(
+    q_mat: Float[Array, "b m m"],
+    q_vec: Float[Array, "b m"],
+    *,
+    tol: float = 1e-9,
+    max_iters: int = 48,
+):
+    """Exact box-QP solutions for a small batch: Cholesky, then active-set steps only
+    where needed.
+
+    1. The unconstrained minimiser $-Q^{-1}q$ (one Cholesky per pixel). Where it is
+       ≥ 0 it is the answer — most pixels of natural scenes.
+    2. Only if some pixel of the batch has a negative entry, :func:`active_set_step`
+       runs on the whole batch (pixels already optimal do not change), starting from
+       the clipped solution, until every pixel has converged or `max_iters` steps were
+       taken. Inside `lax.map` this is a real branch: batches without a violation skip
+       it entirely.
+
+    **Returns:** `(x, kkt, steps)` — solutions `(b, m)`, KKT residuals `(b,)` and the
+    number of active-set steps this batch took.
     """
-    x = jnp.zeros_like(q_vec) if x0 is None else jnp.maximum(x0, 0.0)
+    x_u = jax.vmap(unconstrained)(q_mat, q_vec)
+    x, fixed, _ = jax.vmap(_start)(x_u)
+    state = (x, fixed, ~jnp.any(x_u < 0, axis=1))
+    step = jax.vmap(lambda a, b, st: active_set_step(a, b, st, tol))
 
-    def body(_, x):
-        g = q_mat @ x + q_vec
-        free = (x > 0) | (g < 0)
-        target = _free_solve(q_mat, q_vec, free)
-        delta = target - x
-        # Largest step in [0, 1] keeping the positive variables ≥ 0; variables at 0
-        # that the subspace step would push negative are held at 0 (projected).
-        shrinking = (delta < 0) & (x > 0)
-        ratio = jnp.where(shrinking, x / jnp.where(shrinking, -delta, 1.0), jnp.inf)
-        s = jnp.minimum(1.0, jnp.min(ratio))
-        x_new = jnp.maximum(x + s * delta, 0.0)
-        # The variable(s) that block the step are set exactly to 0.
-        return jnp.where(shrinking & (ratio <= s), 0.0, x_new)
+    def cond(carry):
+        (_, _, done), it = carry
+        return (it < max_iters) & ~jnp.all(done)
 
-    return jax.lax.fori_loop(0, iters, body, x)
+    def body(carry):
+        st, it = carry
+        return step(q_mat, q_vec, st), it + 1
+
+    (x, _, _), it = jax.lax.while_loop(cond, body, (state, jnp.zeros((), jnp.int32)))
+    kkt = jax.vmap(kkt_residual)(q_mat, q_vec, x)
+    return x, kkt, it
 
 
 def svd_nullvector(gram_aug: Float[Array, "m1 m1"]) -> Float[Array, " m"]:
@@ -167,46 +232,3 @@ def svd_nullvector(gram_aug: Float[Array, "m1 m1"]) -> Float[Array, " m"]:
     last = v[-1]
     ok = jnp.abs(last) > 1e-12 * jnp.max(jnp.abs(v))
     return jnp.where(ok, v[:-1] / jnp.where(ok, last, 1.0), 0.0)
-
-
-def active_set_batch(
-    q_mat: Float[Array, "b m m"],
-    q_vec: Float[Array, "b m"],
-    *,
-    tol: float = 1e-5,
-    max_iters: int = 20,
-):
-    """Exact box-QP solutions for a small batch: Cholesky, then active-set steps only
-    where needed.
-
-    1. The unconstrained minimiser $-Q^{-1}q$ (one Cholesky per pixel). Where it is
-       ≥ 0 it is the answer — most pixels of natural scenes.
-    2. Only if some pixel of the batch violates the bound (or the KKT test at
-       `tol`), :func:`projected_newton`-style steps run on the whole batch, starting
-       from the clipped solution, until every pixel passes the KKT test or
-       `max_iters` steps were taken. Inside `lax.map` this is a real branch: batches
-       without a violation skip it.
-
-    **Returns:** `(x, kkt, steps)` — solutions `(b, m)`, KKT residuals `(b,)` and the
-    number of active-set steps this batch took.
-    """
-    x_u = jax.vmap(unconstrained)(q_mat, q_vec)
-    x = jnp.maximum(x_u, 0.0)
-    kkt = jax.vmap(kkt_residual)(q_mat, q_vec, x)
-
-    def step(x):
-        return jax.vmap(lambda a, b, x: projected_newton(a, b, x, iters=1))(
-            q_mat, q_vec, x
-        )
-
-    def cond(state):
-        _, kkt, it = state
-        return (it < max_iters) & jnp.any(kkt > tol)
-
-    def body(state):
-        x, _, it = state
-        x = step(x)
-        return x, jax.vmap(kkt_residual)(q_mat, q_vec, x), it + 1
-
-    x, kkt, it = jax.lax.while_loop(cond, body, (x, kkt, jnp.zeros((), jnp.int32)))
-    return x, kkt, it

@@ -1,0 +1,72 @@
+"""Shared helpers of the studies (public API only): capture, reconstruct, save."""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import time
+from pathlib import Path
+
+import jax
+import jax.random as jr
+import numpy as np
+
+import evhsi_jax as ev
+
+OUT = Path(__file__).parent / "results"
+
+
+def machine() -> str:
+    return (
+        f"{os.cpu_count()} CPU ({platform.processor() or platform.machine()}), "
+        f"jax {jax.__version__}, {jax.devices()[0].platform}"
+    )
+
+
+def capture(scene_name, size, *, rig=None, sweeps=1, seed=0):
+    """Simulate a built-in scene; returns (rig, scene, events, sim_info, truth)."""
+    rig = rig or ev.Rig()
+    scene = ev.load_scene(scene_name, size)
+    events, info = ev.simulate(
+        scene, rig, sweeps=sweeps, key=jr.key(seed), return_info=True
+    )
+    return rig, scene, events, info, scene.truth_cube(rig.grid)
+
+
+def timed_reconstruct(events, rig, info=None, **kw):
+    """Reconstruct (with the sensor's per-pixel thresholds if `info` is given)."""
+    if info is not None:
+        kw.update(
+            threshold_on_map=info.threshold_on, threshold_off_map=info.threshold_off
+        )
+    t0 = time.perf_counter()
+    cube = ev.reconstruct(events, rig, **kw)
+    return cube, time.perf_counter() - t0
+
+
+def save(name: str, payload: dict, fig=None):
+    """Write results/<name>.json (and .png from a matplotlib figure)."""
+    OUT.mkdir(exist_ok=True)
+    payload = {"machine": machine(), **payload}
+    (OUT / f"{name}.json").write_text(json.dumps(payload, indent=1, default=_jsonable))
+    if fig is not None:
+        fig.savefig(OUT / f"{name}.png", dpi=110)
+    print(f"wrote {OUT / name}.json" + (" and .png" if fig is not None else ""))
+
+
+def _jsonable(v):
+    if isinstance(v, np.generic):
+        return v.item()
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    raise TypeError(type(v))
+
+
+def pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
