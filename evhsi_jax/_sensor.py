@@ -85,10 +85,16 @@ def exact_events_scan(
         pending = pending & ~rel
         s = jnp.where(rel, ta + f_rel * (tb - ta), ta)
         ls = jnp.where(rel, l_rel, la)
-        up = ~pending & (lb >= r + threshold_on)
-        dn = ~pending & (lb <= r - threshold_off) & ~up
+        # Already past a threshold when sensitivity starts ("event" mode: a crossing
+        # during the refractory period): fire right at release, even if the level
+        # turns back before the end of the step.
+        beyond_on = ls >= r + threshold_on
+        beyond_off = ls <= r - threshold_off
+        up = ~pending & ~beyond_off & ((lb >= r + threshold_on) | beyond_on)
+        dn = ~pending & ~up & ((lb <= r - threshold_off) | beyond_off)
         target = jnp.where(up, r + threshold_on, r - threshold_off)
         tc = s + _safe_frac(target - ls, lb - ls) * (tb - s)
+        tc = jnp.where(beyond_on | beyond_off, s, tc)
         fired = up | dn
         t_free = jnp.where(fired, tc + refractory_us, t_free)
         pending = pending | fired
@@ -116,8 +122,9 @@ def soft_event_counts(
     The exact scan with every boolean replaced by a probability: firing is
     $\\mathrm{sigmoid}((\\log I - r - C)/τ)$ times the probability of being sensitive,
     release is $\\mathrm{sigmoid}((t_b - t_{free})/τ_t)$ with $τ_t = τ\\,Δt/C$, and the
-    state (reference, release time, blindness) is carried as its expectation. At
-    `temperature → 0` this is :func:`exact_events_scan`, step for step.
+    state is carried as expectations: the blind probability, the reference of the
+    sensitive pixels and the release time of the blind ones. At `temperature → 0` this
+    is :func:`exact_events_scan` (release mode), step for step.
 
     **Arguments:** as :func:`exact_events_scan`, plus `temperature` τ in log units
     (e.g. 0.01–0.05 for calibration; must be > 0). `state` may be a soft state
@@ -138,11 +145,16 @@ def soft_event_counts(
         rel = pend * jax.nn.sigmoid((tb - t_free) / tau_t)
         f_rel = _safe_frac(t_free - ta, dt)
         l_rel = la + f_rel * (lb - la)
-        r = r + rel * (l_rel - r)
+        # `r`, `s`, `ls` describe the *sensitive* pixels. The mass released now joins
+        # them with its own reference (the level at release), weighted by its share
+        # `w` of the sensitive mass; the blind mass's stale reference plays no part.
+        sens = 1.0 - pend + rel
+        ok_w = sens > 1e-12
+        w = jnp.where(ok_w, rel / jnp.where(ok_w, sens, 1.0), 0.0)
+        r = r + w * (l_rel - r)
         pend = pend - rel
-        s = ta + rel * f_rel * dt
-        ls = la + rel * (l_rel - la)
-        sens = 1.0 - pend
+        s = ta + w * f_rel * dt
+        ls = la + w * (l_rel - la)
         up = sens * jax.nn.sigmoid((lb - r - threshold_on) / temperature)
         dn = (sens - up) * jax.nn.sigmoid((r - threshold_off - lb) / temperature)
         tc_up = s + _safe_frac(r + threshold_on - ls, lb - ls) * (tb - s)

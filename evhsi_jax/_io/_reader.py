@@ -1,0 +1,381 @@
+"""Reading event files: format detection, bounded-memory streaming, time windows.
+
+`EventReader` opens a `.raw` (EVT 3.0 or EVT 2.0, told apart by the header) or `.npz`
+file and hands out `EventStream` chunks. Raw files are read `chunk_bytes` at a time; the
+decoder state (row, vector base, time base, wrap count, running maximum) is carried from
+chunk to chunk, so memory stays bounded by the chunk size and the result does not depend
+on where chunks are cut (nor on the number of decoding threads, see `_pipeline`).
+
+A time window `[t0, t1)` is read without decoding the whole file: the first window read
+makes one cheap pass that advances the decoder state without expanding events and
+records, for each chunk, its file offset, the state at its start and the time range of
+its events and triggers (the running maximum makes these ranges tight). Later reads seek
+straight to the chunks that overlap the window and decode only those.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from .._events import EventStream
+from ._chunks import DecodedChunk
+from ._evt2 import Evt2State
+from ._evt3_decode import Evt3State
+from ._header import DEFAULT_GEOMETRY, MAX_HEADER_BYTES, RawHeader, parse_header
+from ._pipeline import CODECS, decode_chunks
+from ._report import DecodeReport
+
+__all__ = [
+    "EventReader",
+    "open_events",
+    "read_events",
+    "iter_events",
+    "read_events_window",
+    "DEFAULT_CHUNK_BYTES",
+]
+
+DEFAULT_CHUNK_BYTES = 1 << 19  # 512 KiB: temporaries stay in cache (fastest here)
+PIPELINE_MIN_CHUNK = 1 << 16  # below this, thread hand-offs cost more than they save
+_FORMATS = ("evt3", "evt2")
+
+
+@dataclasses.dataclass(frozen=True)
+class _Checkpoint:
+    offset: int
+    nbytes: int
+    state: Evt3State | Evt2State
+    t_lo: int  # running maximum of event times before the chunk
+    t_hi: int  # ... and after it
+    g_lo: int  # the same for triggers
+    g_hi: int
+    n_events: int
+    n_triggers: int
+
+
+class EventReader:
+    """A streaming reader for one event file.
+
+    **Arguments:**
+
+    - `path`: a `.raw` (Prophesee EVT 3.0 or EVT 2.0) or `.npz` (DESIGN.md layout) file.
+    - `chunk_bytes`: bytes decoded per chunk (raw files); bounds memory.
+    - `strict`: raise `ValueError` on the first defect instead of skipping and counting
+      it in `report` (see `DecodeReport`).
+    - `geometry`: `(width, height)` overriding the header (raw files).
+    - `format`: `"evt3"` or `"evt2"`, overriding the header; needed for a raw file whose
+      header does not name its format.
+    - `workers`: decoding threads; `None` uses two for chunks of 64 KiB and more when
+      there are at least four of them (the result does not depend on it, see
+      `_pipeline`).
+
+    After reading, `report` holds the counts of what was decoded and skipped.
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        *,
+        chunk_bytes: int = DEFAULT_CHUNK_BYTES,
+        strict: bool = False,
+        geometry: tuple[int, int] | None = None,
+        format: str | None = None,
+        workers: int | None = None,
+    ) -> None:
+        self.path = Path(path)
+        self.workers = workers
+        if not self.path.is_file():
+            raise ValueError(f"event file not found: {self.path}")
+        if chunk_bytes < 1:
+            raise ValueError(f"chunk_bytes must be positive, got {chunk_bytes}")
+        self.chunk_bytes = int(chunk_bytes)
+        self.strict = bool(strict)
+        self.report = DecodeReport()
+        self.header: RawHeader | None = None
+        self._index: list[_Checkpoint] | None = None
+        self._npz: EventStream | None = None
+        suffix = self.path.suffix.lower()
+        if suffix == ".npz":
+            self.format = "npz"
+            self._npz = EventStream.load_npz(self.path)
+            self.width, self.height = self._npz.width, self._npz.height
+            self.geometry_source = "npz"
+            self.data_offset = 0
+            return
+        if suffix != ".raw":
+            raise ValueError(
+                f"{self.path}: unknown event file extension {suffix!r} "
+                "(expected .raw or .npz)"
+            )
+        self.header = self._read_header()
+        fmt = format or self.header.format
+        if self.header.size == 0 and format is None:
+            raise ValueError(
+                f"{self.path}: no Prophesee header ('% key value' lines); "
+                "not an EVT .raw file (pass format='evt3' or 'evt2' to force)"
+            )
+        if fmt is None:
+            raise ValueError(
+                f"{self.path}: header names no event format ('% evt 3.0' or "
+                "'% format EVT3'); pass format='evt3' or 'evt2'"
+            )
+        if fmt not in _FORMATS:
+            raise ValueError(f"{self.path}: event format {fmt!r} is not supported")
+        self.format = fmt
+        if geometry is not None:
+            self.width, self.height = (int(v) for v in geometry)
+            self.geometry_source = "argument"
+        elif self.header.width is not None:
+            self.width, self.height = self.header.geometry()
+            self.geometry_source = "header"
+        else:
+            self.width, self.height = DEFAULT_GEOMETRY
+            self.geometry_source = "default"
+        if self.width <= 0 or self.height <= 0:
+            raise ValueError(
+                f"geometry must be positive, got {self.width}x{self.height}"
+            )
+        self.data_offset = self.header.size
+        self.file_bytes = self.path.stat().st_size
+
+    def _read_header(self) -> RawHeader:
+        """Parse the header, reading only as much of the file as it takes."""
+        size = 4096
+        with open(self.path, "rb") as f:
+            while True:
+                f.seek(0)
+                head = f.read(size)
+                at_eof = len(head) < size
+                try:
+                    header = parse_header(head, at_eof=at_eof)
+                except ValueError as err:
+                    if at_eof or size > MAX_HEADER_BYTES:
+                        raise ValueError(f"{self.path}: {err}") from None
+                    header = None
+                if header is not None and (at_eof or header.size < len(head)):
+                    return header
+                if size > MAX_HEADER_BYTES:
+                    raise ValueError(
+                        f"{self.path}: header is longer than {MAX_HEADER_BYTES} bytes"
+                    )
+                size *= 4
+
+    # --- decoding ---
+    @property
+    def word_bytes(self) -> int:
+        """Bytes per data word (2 for EVT 3.0, 4 for EVT 2.0)."""
+        return CODECS[self.format].word_bytes
+
+    def _new_state(self) -> Evt3State | Evt2State:
+        return CODECS[self.format].new_state()
+
+    def _decoded(
+        self,
+        offset: int,
+        state: Evt3State | Evt2State,
+        report: DecodeReport,
+        *,
+        stop: int | None = None,
+        **kwargs,
+    ) -> Iterator[tuple]:
+        """`decode_chunks` over `[offset, stop)` with this reader's settings."""
+        stop = self.file_bytes if stop is None else stop
+        workers = self.workers
+        if workers is None:  # threads pay off for large chunks of large ranges
+            big = self.chunk_bytes >= PIPELINE_MIN_CHUNK
+            many = stop - offset >= 4 * self.chunk_bytes
+            workers = min(2, os.cpu_count() or 1) if big and many else 1
+        return decode_chunks(
+            self.path,
+            CODECS[self.format],
+            offset,
+            stop,
+            state,
+            report,
+            chunk_bytes=self.chunk_bytes,
+            width=self.width,
+            height=self.height,
+            strict=self.strict,
+            workers=workers,
+            **kwargs,
+        )
+
+    def _stream(self, c: DecodedChunk) -> EventStream:
+        return EventStream(*c[:4], self.width, self.height, *c[4:])
+
+    def __iter__(self) -> Iterator[EventStream]:
+        """Chunks of the file in order, each an `EventStream` (empty chunks skipped)."""
+        if self._npz is not None:
+            n = max(1, self.chunk_bytes // 2)
+            ev = self._npz
+            for i in range(0, len(ev), n):
+                part = ev.take(slice(i, i + n))
+                if i:
+                    part = dataclasses.replace(
+                        part,
+                        trigger_t_us=part.trigger_t_us[:0],
+                        trigger_p=part.trigger_p[:0],
+                        trigger_id=part.trigger_id[:0],
+                    )
+                yield part
+            if not len(ev) and ev.trigger_t_us.size:
+                yield ev
+            return
+        self.report = DecodeReport()
+        for *_, c in self._decoded(self.data_offset, self._new_state(), self.report):
+            if c.x.size or c.trigger_t_us.size:
+                yield self._stream(c)
+
+    def read(self) -> EventStream:
+        """The whole file as one `EventStream`."""
+        if self._npz is not None:
+            return self._npz
+        self.report = DecodeReport()
+        parts = [
+            c
+            for *_, c in self._decoded(self.data_offset, self._new_state(), self.report)
+        ]
+        return self._stream(_concat(parts))
+
+    # --- time windows ---
+    def build_index(self) -> None:
+        """One cheap pass recording each chunk's start state and time range."""
+        if self._npz is not None or self._index is not None:
+            return
+        index = []
+        state = self._new_state()
+        report = DecodeReport()  # the pass's own: `self.report` describes reads
+        for offset, nbytes, before, sc in self._decoded(
+            self.data_offset, state, report, expand=False, snapshots=True
+        ):
+            index.append(
+                _Checkpoint(
+                    offset=offset,
+                    nbytes=nbytes,
+                    state=before,
+                    t_lo=before.last_t,
+                    t_hi=state.last_t,
+                    g_lo=before.last_trig_t,
+                    g_hi=state.last_trig_t,
+                    n_events=int(np.count_nonzero(sc.mask))
+                    if sc.mask is not None
+                    else int(sc.epos.size),
+                    n_triggers=int(sc.triggers[0].size),
+                )
+            )
+        self._index = index
+
+    def read_window(
+        self, t0_us: int | np.integer, t1_us: int | np.integer
+    ) -> EventStream:
+        """Events and triggers with `t0_us <= t < t1_us`, decoding only chunks that
+        overlap the window (after a one-time index pass; see the module doc).
+
+        **Arguments:**
+
+        - `t0_us`, `t1_us`: window bounds in µs (decoded, wrap-extended time).
+
+        **Returns:** the same as `read().time_window(t0_us, t1_us)`.
+        """
+        t0_us, t1_us = int(t0_us), int(t1_us)
+        if self._npz is not None:
+            return self._npz.time_window(t0_us, t1_us)
+        self.build_index()
+        self.report = DecodeReport()
+        wanted = [
+            i
+            for i, cp in enumerate(self._index)
+            if (cp.n_events and cp.t_hi >= t0_us and cp.t_lo < t1_us)
+            or (cp.n_triggers and cp.g_hi >= t0_us and cp.g_lo < t1_us)
+        ]
+        parts = []
+        if wanted:  # a contiguous run of chunks (times only grow): decode it
+            first, last = self._index[wanted[0]], self._index[wanted[-1]]
+            parts = [
+                c
+                for *_, c in self._decoded(
+                    first.offset,
+                    first.state.copy(),
+                    self.report,
+                    stop=last.offset + last.nbytes,
+                )
+            ]
+        if not parts:
+            return self._stream(DecodedChunk.empty())
+        return self._stream(_concat(parts)).time_window(t0_us, t1_us)
+
+
+def _concat(parts: list[DecodedChunk]) -> DecodedChunk:
+    if not parts:
+        return DecodedChunk.empty()
+    if len(parts) == 1:
+        return parts[0]
+    return DecodedChunk(*(np.concatenate(cols) for cols in zip(*parts)))
+
+
+def open_events(path: str | os.PathLike, **kwargs) -> EventReader:
+    """Open an event file for streaming (`EventReader`; same keyword arguments)."""
+    return EventReader(path, **kwargs)
+
+
+def read_events(
+    path: str | os.PathLike,
+    *,
+    strict: bool = False,
+    geometry: tuple[int, int] | None = None,
+    format: str | None = None,
+) -> EventStream:
+    """Read a whole event file by extension: `.raw` (EVT 3.0 / 2.0 by header) or `.npz`.
+
+    **Arguments:**
+
+    - `path`: the file.
+    - `strict`, `geometry`, `format`: see `EventReader`.
+
+    **Returns:** the `EventStream` (time-ordered; defects skipped unless `strict`).
+    """
+    return EventReader(path, strict=strict, geometry=geometry, format=format).read()
+
+
+def iter_events(
+    path: str | os.PathLike,
+    *,
+    chunk_bytes: int = DEFAULT_CHUNK_BYTES,
+    strict: bool = False,
+    geometry: tuple[int, int] | None = None,
+    format: str | None = None,
+) -> Iterator[EventStream]:
+    """Stream an event file as `EventStream` chunks with bounded memory.
+
+    **Arguments:** as for `EventReader`.
+
+    **Returns:** an iterator of chunks whose concatenation is `read_events(path)`.
+    """
+    yield from EventReader(
+        path, chunk_bytes=chunk_bytes, strict=strict, geometry=geometry, format=format
+    )
+
+
+def read_events_window(
+    path: str | os.PathLike,
+    t0_us: int | np.integer,
+    t1_us: int | np.integer,
+    *,
+    strict: bool = False,
+    geometry: tuple[int, int] | None = None,
+    format: str | None = None,
+) -> EventStream:
+    """Events and triggers with `t0_us <= t < t1_us` (see `EventReader.read_window`).
+
+    **Arguments:**
+
+    - `path`: the file; `t0_us`, `t1_us`: window in µs; the rest as for `EventReader`.
+
+    **Returns:** equal to `read_events(path).time_window(t0_us, t1_us)`.
+    """
+    reader = EventReader(path, strict=strict, geometry=geometry, format=format)
+    return reader.read_window(t0_us, t1_us)
