@@ -5,6 +5,39 @@ soft), event files, per-pixel box-QP reconstruction, metrics and rendering. The 
 API is re-exported here; implementation lives in private modules.
 """
 
+from ._calibrate import (
+    CalibrationResult as CalibrationResult,
+)
+from ._calibrate import (
+    ChartData as ChartData,
+)
+from ._calibrate import (
+    apply_spectral_correction as apply_spectral_correction,
+)
+from ._calibrate import (
+    calibrate as calibrate,
+)
+from ._calibrate import (
+    chart_data as chart_data,
+)
+from ._calibrate import (
+    chart_log_steps as chart_log_steps,
+)
+from ._calibrate import (
+    chart_residuals as chart_residuals,
+)
+from ._calibrate import (
+    save_calibration as save_calibration,
+)
+from ._calibrate import (
+    spectral_correction as spectral_correction,
+)
+from ._calibrate import (
+    spectral_traces as spectral_traces,
+)
+from ._calibrate import (
+    threshold_maps_from_chart as threshold_maps_from_chart,
+)
 from ._cubefile import load_cube as load_cube
 from ._cubefile import save_cube as save_cube
 from ._events import EventStream as EventStream
@@ -130,9 +163,9 @@ from ._render import (
 )
 from ._rig import Rig as Rig
 from ._scenes import BUILTIN_SCENES as BUILTIN_SCENES
-from ._scenes import parse_size as parse_size
 from ._scenes import Scene as Scene
 from ._scenes import load_scene as load_scene
+from ._scenes import parse_size as parse_size
 from ._sensor import exact_events_scan as exact_events_scan
 from ._sensor import soft_event_counts as soft_event_counts
 from ._simulate import (

@@ -124,11 +124,17 @@ def band_table(rig: Rig, *, fwhm_bound_nm: float | None = None) -> BandTable:
     return BandTable(raw * gain, lo, TABLE_STEP_NM)
 
 
-def lookup(table: BandTable, centre_nm: Float[Array, "..."]) -> Float[Array, "... f"]:
-    """Linear interpolation of the table at band centres `centre_nm` (any shape).
+def lookup(
+    table: BandTable, centre_nm: Float[Array, "..."], *, order: int = 1
+) -> Float[Array, "... f"]:
+    """Interpolate the table at band centres `centre_nm` (any shape).
 
-    Outside the table the response is zero. Differentiable in `centre_nm` (piecewise
-    linear, derivative exact between table nodes) and in the table values.
+    Outside the table the response is zero. `order=1` is linear (value error ~2e-5 of
+    the peak at 0.1 nm steps, derivative piecewise constant); `order=3` is cubic Hermite
+    with Catmull–Rom slopes, whose derivative is continuous — what a Gauss–Newton fit of
+    time offsets needs, since with linear interpolation the residuals have kinks every
+    table step (≈ 6 µs of sweep time at the default β). Differentiable in `centre_nm`
+    and in the table values.
     """
     n = table.values.shape[0]
     pos = (centre_nm - table.lo_nm) / table.step_nm
@@ -137,7 +143,23 @@ def lookup(table: BandTable, centre_nm: Float[Array, "..."]) -> Float[Array, "..
     i0f = jnp.clip(jnp.floor(pos), 0, n - 2)
     i0 = i0f.astype(jnp.int32)
     frac = (pos - i0f)[..., None]
-    v = table.values[i0] * (1 - frac) + table.values[i0 + 1] * frac
+    vals = table.values
+    if order == 1:
+        v = vals[i0] * (1 - frac) + vals[i0 + 1] * frac
+    elif order == 3:
+        p0 = vals[jnp.maximum(i0 - 1, 0)]
+        p1, p2 = vals[i0], vals[i0 + 1]
+        p3 = vals[jnp.minimum(i0 + 2, n - 1)]
+        m1, m2 = 0.5 * (p2 - p0), 0.5 * (p3 - p1)
+        f2, f3 = frac * frac, frac * frac * frac
+        v = (
+            (2 * f3 - 3 * f2 + 1) * p1
+            + (f3 - 2 * f2 + frac) * m1
+            + (-2 * f3 + 3 * f2) * p2
+            + (f3 - f2) * m2
+        )
+    else:
+        raise ValueError(f"order must be 1 or 3, got {order}")
     return jnp.where(inside[..., None], v, 0.0)
 
 

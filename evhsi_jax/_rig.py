@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
@@ -64,6 +65,7 @@ DEFAULTS: dict[str, Any] = {
     "camera_response": None,
     "lamp": None,
     "threshold_map": None,
+    "channel_gain": None,
 }
 
 _DOC = {
@@ -91,6 +93,8 @@ _DOC = {
     "lamp": "E(λ): null or {wavelengths_nm: [...], values: [...]}",
     "threshold_map": "null or a sibling .npz with per-pixel threshold_on/threshold_off "
     "(H, W), log units (written by `evhsi calibrate`)",
+    "channel_gain": "null or M per-channel response factors from a white reference; "
+    "reconstructed spectra are divided by them",
 }
 
 COLUMN_SPREAD = (
@@ -175,6 +179,7 @@ class Rig(eqx.Module):
     reset_mode: str = eqx.field(static=True)
     spectra_json: tuple = eqx.field(static=True)
     threshold_map: str | None = eqx.field(static=True)
+    channel_gain: tuple | None = eqx.field(static=True)
 
     def __init__(self, **overrides):
         cfg = _validated({**DEFAULTS, **overrides})
@@ -196,6 +201,8 @@ class Rig(eqx.Module):
         self.spectra_json = (json.dumps(d_json), json.dumps(e_json))
         tmap = cfg["threshold_map"]
         self.threshold_map = None if tmap is None else str(tmap)
+        gain = cfg["channel_gain"]
+        self.channel_gain = None if gain is None else tuple(float(v) for v in gain)
         self.camera_response = jnp.asarray(d, dtype=float)
         self.lamp = jnp.asarray(e, dtype=float)
         for k in (
@@ -217,6 +224,24 @@ class Rig(eqx.Module):
         self.noise_rate_hz = cfg["noise_rate_hz"]
         self.seed = cfg["seed"]
         self.reset_mode = cfg["reset_mode"]
+
+    def replace_static(self, **fields) -> Rig:
+        """A copy with static fields replaced (e.g. `channel_gain`), unvalidated."""
+        import copy
+
+        new = copy.copy(self)
+        for k, v in fields.items():
+            if not hasattr(self, k):
+                raise AttributeError(k)
+            object.__setattr__(new, k, v)
+        return new
+
+    def astype(self, dtype) -> Rig:
+        """The same rig with every floating-point leaf cast to `dtype` (for float64,
+        call inside `jax.enable_x64(True)`)."""
+        return jax.tree.map(
+            lambda a: jnp.asarray(a, dtype) if eqx.is_inexact_array(a) else a, self
+        )
 
     # --- derived quantities ----------------------------------------------------------
     @property
@@ -241,7 +266,9 @@ class Rig(eqx.Module):
     def column_offsets(self, width: int) -> Float[Array, " w"]:
         """τx for `width` columns in µs: the stored offsets or the default stagger."""
         if self.column_offsets_us is None:  # traceable in the sweep rate
-            frac = jnp.asarray(default_column_offsets_us(width, 1e6), self.fwhm_nm.dtype)
+            frac = jnp.asarray(
+                default_column_offsets_us(width, 1e6), self.fwhm_nm.dtype
+            )
             return frac * self.period_us
         if self.column_offsets_us.shape[0] != width:
             raise ValueError(
@@ -352,6 +379,9 @@ class Rig(eqx.Module):
         out["camera_response"] = json.loads(self.spectra_json[0])
         out["lamp"] = json.loads(self.spectra_json[1])
         out["threshold_map"] = self.threshold_map
+        out["channel_gain"] = (
+            None if self.channel_gain is None else list(self.channel_gain)
+        )
         return out
 
     def save(self, path: str | os.PathLike, width: int | None = None) -> None:
@@ -409,6 +439,19 @@ def _validated(cfg: dict) -> dict:
     seed = cfg["seed"]
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ValueError(f"rig key 'seed' must be a non-negative integer, got {seed!r}")
+    gain = cfg["channel_gain"]
+    if gain is not None:
+        arr = np.asarray(gain)
+        if (
+            arr.shape != (out["channels"],)
+            or not np.issubdtype(arr.dtype, np.number)
+            or not np.all(np.isfinite(arr))
+            or np.any(arr <= 0)
+        ):
+            raise ValueError(
+                f"rig key 'channel_gain' must be null or {out['channels']} positive "
+                "numbers (one per channel)"
+            )
     tmap = cfg["threshold_map"]
     if tmap is not None and not isinstance(tmap, str):
         raise ValueError("rig key 'threshold_map' must be null or a file name")

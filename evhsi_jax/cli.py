@@ -220,6 +220,51 @@ def cmd_convert(args):
     return 0
 
 
+def cmd_calibrate(args):
+    from ._calibrate import calibrate, save_calibration
+    from ._io import read_events
+    from ._scenes import load_scene
+
+    out = _out_path(args.out, (".json",), "--out")
+    init = _load_rig(args.init)
+    events = read_events(args.events)
+    if len(events) == 0:
+        raise ValueError(f"{args.events} holds no events")
+    size = (events.height, events.width)
+    chart = load_scene(
+        args.chart, size if not str(args.chart).endswith(".npz") else None
+    )
+    res = calibrate(
+        events,
+        chart,
+        init,
+        per_pixel=not args.global_only,
+        rows_per_label=args.rows_per_patch,
+        t_start_us=args.t_start_us,
+    )
+    rig = res.rig
+    cfg = save_calibration(
+        out, res, comment=f"evhsi calibrate {Path(args.events).name} --chart {args.chart}"
+    )
+    print(f"{'parameter':18s} {'initial':>12s} {'fitted':>12s}")
+    for k in ("threshold_on", "threshold_off", "beta_nm_per_rad", "baseline_rel"):
+        print(f"{k:18s} {float(getattr(init, k)):12.5g} {float(getattr(rig, k)):12.5g}")
+    offs = np.asarray(rig.column_offsets_us)
+    d0 = np.asarray(init.column_offsets(events.width))
+    print(
+        f"{'column offsets':18s} {'':>12s} {events.width} columns, {offs.min():.1f} to "
+        f"{offs.max():.1f} µs (RMS change {np.sqrt(np.mean((offs - d0) ** 2)):.1f} µs)"
+    )
+    if res.threshold_on_map is not None:
+        print(
+            f"{'per-pixel maps':18s} {'':>12s} ON sd {res.threshold_on_map.std():.4f}, "
+            f"OFF sd {res.threshold_off_map.std():.4f} -> {cfg['threshold_map']}"
+        )
+    print(cfg["comment"])
+    print(f"wrote {out}")
+    return 0
+
+
 def cmd_demo(args):
     from ._demo import run_demo
 
@@ -371,6 +416,46 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("src", metavar="IN")
     p.add_argument("dst", metavar="OUT")
     p.set_defaults(func=cmd_convert)
+
+    p = sub.add_parser(
+        "calibrate",
+        help="fit thresholds, β, c and column offsets to a chart capture",
+        description="Fit the rig jointly (optimistix Levenberg-Marquardt) to events of "
+        "a chart of known reflectance: ON/OFF thresholds (log units), sweep coefficient "
+        "β (nm/rad), constant light c (fraction of a white pixel's peak) and one time "
+        "offset τx per column (µs); then per-pixel threshold maps, written to a sibling "
+        "<out>_thresholds.npz named by the calibration file.\n" + UNITS,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "events", metavar="EVENTS", help="capture of the chart (.npz or .raw)"
+    )
+    p.add_argument(
+        "--chart",
+        default="gray-chart",
+        help="built-in chart (gray-chart, colorchecker, ...) laid out on the "
+        "sensor, or a scene .npz of the sensor's size",
+    )
+    p.add_argument("--out", required=True, metavar="CALIB.json")
+    p.add_argument(
+        "--init", metavar="RIG.json", help="initial rig (default: paper rig)"
+    )
+    p.add_argument(
+        "--rows-per-patch",
+        type=int,
+        default=4,
+        help="rows of each patch per column used in the global fit",
+    )
+    p.add_argument(
+        "--global-only", action="store_true", help="skip the per-pixel threshold maps"
+    )
+    p.add_argument(
+        "--t-start-us",
+        type=int,
+        default=None,
+        help="start of the first sweep in µs (default: first trigger, else 0)",
+    )
+    p.set_defaults(func=cmd_calibrate)
 
     p = sub.add_parser(
         "demo",

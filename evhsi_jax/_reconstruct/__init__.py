@@ -1,5 +1,7 @@
 """Per-pixel box-QP reconstruction of spectra from events."""
 
+from ._implicit import box_qp as box_qp
+from ._implicit import reconstruct_pixels as reconstruct_pixels
 from ._pipeline import (
     SOLVERS as SOLVERS,
 )
@@ -15,6 +17,8 @@ from ._pipeline import (
 from ._pipeline import (
     solver_spec as solver_spec,
 )
+from ._pixels import PixelBatch as PixelBatch
+from ._pixels import group_pixels as group_pixels
 from ._problem import (
     ProblemConfig as ProblemConfig,
 )
@@ -25,17 +29,17 @@ from ._problem import (
     spectral_prior_matrix as spectral_prior_matrix,
 )
 from ._solvers import (
+    active_set as active_set,
+)
+from ._solvers import (
+    active_set_batch as active_set_batch,
+)
+from ._solvers import (
     apg as apg,
 )
 from ._solvers import (
     kkt_residual as kkt_residual,
 )
 from ._solvers import (
-    active_set as active_set,
-    active_set_batch as active_set_batch,
-)
-from ._solvers import (
     svd_nullvector as svd_nullvector,
 )
-from ._implicit import box_qp as box_qp, reconstruct_pixels as reconstruct_pixels
-from ._pixels import PixelBatch as PixelBatch, group_pixels as group_pixels

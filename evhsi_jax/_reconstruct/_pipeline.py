@@ -253,6 +253,8 @@ def reconstruct(
     if bad.any():  # never hand out NaN: fall back to the no-event answer, flagged
         cube[bad] = _no_event_answer(rig, m)
         kkt_all[np.any(bad, axis=1)] = np.inf
+    if rig.channel_gain is not None:  # white-reference response correction
+        cube = cube / np.asarray(rig.channel_gain, np.float32)
     cube = cube.reshape(h, w, m)
     if not return_info:
         return cube
