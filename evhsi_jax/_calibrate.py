@@ -285,6 +285,14 @@ def _device(d: ChartData, dtype):
 
 
 # --- the joint fit ---------------------------------------------------------------------
+def _normal_cg(rtol, atol):
+    """CG on the normal equations (matrix-free): `lx.Normal(lx.CG)` in newer lineax,
+    `lx.NormalCG` before it."""
+    if hasattr(lx, "Normal"):
+        return lx.Normal(lx.CG(rtol=rtol, atol=atol))
+    return lx.NormalCG(rtol=rtol, atol=atol)
+
+
 def _response_basis(rig: Rig, degree: int) -> np.ndarray:
     """Legendre polynomials P1..P_degree over the channel range, on the fine grid
     (`(degree, F)`): the smooth log-correction of D(λ) a gray chart can identify (P0 is
@@ -568,7 +576,7 @@ def _calibrate64(
     solver = optx.LevenbergMarquardt(
         rtol=1e-7,
         atol=1e-9,
-        linear_solver=lx.NormalCG(rtol=1e-6, atol=1e-9),
+        linear_solver=_normal_cg(rtol=1e-6, atol=1e-9),
         verbose=bool(verbose),
     )
     # Stage 1: one threshold pair for all pixels. Stage 2 (per_pixel): the same fit with

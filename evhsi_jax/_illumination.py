@@ -39,8 +39,8 @@ __all__ = [
 
 _SQRT2 = np.sqrt(2.0)
 TABLE_STEP_NM = 0.1
-#: Table half-margin assumption (in FWHM units ×3) when the FWHM is traced and no bound
-#: is given: bands up to 50 nm FWHM are tabulated without truncation.
+#: Bands up to this FWHM share one table range (3 × 50 nm beyond the channels), also
+#: when the FWHM is traced.
 TRACED_FWHM_BOUND_NM = 50.0
 
 
@@ -50,11 +50,13 @@ def fwhm_to_sigma(fwhm_nm):
 
 
 def table_range_nm(rig: Rig, fwhm_bound_nm: float | None = None) -> tuple[float, float]:
-    """Static λc range of the table: the channel range widened by 3 FWHM.
+    """Static λc range of the table: the channel range widened by 3 × max(FWHM, 50 nm).
 
     Beyond it the band overlaps the channel range by less than $10^{-10}$ of its peak.
-    `fwhm_bound_nm` replaces the rig's FWHM by a static bound; when the FWHM is traced
-    and no bound is given, 50 nm is assumed.
+    For every FWHM up to 50 nm the range is the same, so a rig whose FWHM is traced
+    (differentiated) gets exactly the table of the same rig evaluated concretely —
+    gradients then match finite differences. `fwhm_bound_nm` widens it for broader
+    bands (static).
     """
     if fwhm_bound_nm is not None:
         fwhm = float(fwhm_bound_nm)
@@ -63,7 +65,7 @@ def table_range_nm(rig: Rig, fwhm_bound_nm: float | None = None) -> tuple[float,
             fwhm = float(rig.fwhm_nm)
         except jax.errors.ConcretizationTypeError:  # traced (being differentiated)
             fwhm = TRACED_FWHM_BOUND_NM
-    margin = 3.0 * max(fwhm, 4.0)
+    margin = 3.0 * max(fwhm, TRACED_FWHM_BOUND_NM)
     return rig.grid.start_nm - margin, rig.grid.stop_nm + margin
 
 

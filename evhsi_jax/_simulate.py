@@ -93,11 +93,17 @@ def _check_sweep_fits(rig: Rig, offsets: np.ndarray):
 
 
 def _windows(rig, table: BandTable, offsets, n_samples, dt, chunk_columns):
-    """First sample index of each chunk's active window, and the common window length."""
+    """First sample index of each chunk's active window, and the common window length.
+
+    The window covers band centres within 3 FWHM of the channel range (beyond, the band
+    overlaps the channels by < 1e-10 of its peak), clipped to the table.
+    """
     lam0 = float(rig.sweep_start_nm)
     speed = float(rig.beta_nm_per_rad * rig.omega_rad_per_us)
-    lo = table.lo_nm
-    hi = table.lo_nm + table.step_nm * (table.values.shape[0] - 1)
+    margin = 3.0 * max(float(rig.fwhm_nm), 4.0)
+    lo = max(table.lo_nm, rig.grid.start_nm - margin)
+    hi = min(table.lo_nm + table.step_nm * (table.values.shape[0] - 1),
+             rig.grid.stop_nm + margin)
     t_lo = (lo - lam0) / speed - offsets
     t_hi = (hi - lam0) / speed - offsets
     j_lo = np.clip(np.floor(t_lo / dt).astype(int) - 1, 0, n_samples)

@@ -1,0 +1,192 @@
+"""Calibration: residual gradients, recovery of a perturbed rig, bad input, white gains."""
+
+import json
+import subprocess
+import sys
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
+import pytest
+
+import evhsi_jax as ev
+
+H, W = 12, 8  # 6 gray stripes of 2 rows, 8 columns
+
+
+def _true_rig(width=W, **kw):
+    base = np.asarray(ev.Rig().column_offsets(width), np.float64)
+    wiggle = 3.0 * np.sin(np.arange(width) / 2.0)
+    cfg = dict(
+        threshold_on=0.18,
+        threshold_off=0.125,
+        beta_nm_per_rad=185 * 1.07,
+        baseline_rel=0.034,
+        column_offsets_us=(base + 5.0 + wiggle).tolist(),
+    )
+    cfg.update(kw)
+    return ev.Rig(**cfg)
+
+
+@pytest.fixture(scope="module")
+def capture():
+    truth = _true_rig()
+    chart = ev.load_scene("gray-chart", (H, W))
+    events, info = ev.simulate(chart, truth, sweeps=2, key=jr.key(11), return_info=True)
+    return truth, chart, events, info
+
+
+@pytest.fixture(scope="module")
+def fitted(capture):
+    truth, chart, events, info = capture
+    return ev.calibrate(events, chart, ev.Rig(), rows_per_label=None)
+
+
+def test_recovers_a_perturbed_rig(capture, fitted):
+    truth, _, _, info = capture
+    rig = fitted.rig
+    # Population thresholds: the mean of this sensor's per-pixel thresholds.
+    assert float(rig.threshold_on) == pytest.approx(info.threshold_on.mean(), rel=0.01)
+    assert float(rig.threshold_off) == pytest.approx(
+        info.threshold_off.mean(), rel=0.01
+    )
+    assert float(rig.beta_nm_per_rad) == pytest.approx(
+        float(truth.beta_nm_per_rad), rel=0.005
+    )
+    assert float(rig.baseline_rel) == pytest.approx(float(truth.baseline_rel), rel=0.02)
+    tau_err = np.asarray(rig.column_offsets_us) - np.asarray(truth.column_offsets_us)
+    assert np.sqrt(np.mean(tau_err**2)) < 2.0  # µs
+    spread = info.threshold_on.std()
+    assert (
+        np.sqrt(np.mean((fitted.threshold_on_map - info.threshold_on) ** 2))
+        < 0.2 * spread
+    )
+    assert (
+        np.sqrt(np.mean((fitted.threshold_off_map - info.threshold_off) ** 2))
+        < 0.2 * spread
+    )
+    assert fitted.rms_residual < 0.1 * fitted.rms_residual_initial
+
+
+def test_residual_gradients_match_finite_differences(capture):
+    truth, chart, events, _ = capture
+    with jax.enable_x64(True):
+        rig = _true_rig(threshold_sigma=0.0).astype(jnp.float64)
+        data = ev.chart_data(events, chart, rig, rows_per_label=1)
+
+        def loss(r):
+            res = ev.chart_residuals(r, data)
+            return jnp.sum(res**2)
+
+        grad = eqx.filter_grad(loss)(rig)
+        checks = {
+            "beta_nm_per_rad": (lambda r: r.beta_nm_per_rad, 1e-4),
+            "threshold_on": (lambda r: r.threshold_on, 1e-7),
+            "baseline_rel": (lambda r: r.baseline_rel, 1e-8),
+            "fwhm_nm": (lambda r: r.fwhm_nm, 1e-5),
+        }
+        for name, (where, h) in checks.items():
+            v = where(rig)
+            fd = (
+                loss(eqx.tree_at(where, rig, v + h))
+                - loss(eqx.tree_at(where, rig, v - h))
+            ) / (2 * h)
+            assert float(where(grad)) == pytest.approx(float(fd), rel=1e-4, abs=1e-6), (
+                name
+            )
+        # One column offset and one camera-response sample.
+        g_tau = float(grad.column_offsets_us[3])
+        h = 1e-3
+        tp = rig.column_offsets_us.at[3].add(h)
+        tm = rig.column_offsets_us.at[3].add(-h)
+        fd = (
+            loss(eqx.tree_at(lambda r: r.column_offsets_us, rig, tp))
+            - loss(eqx.tree_at(lambda r: r.column_offsets_us, rig, tm))
+        ) / (2 * h)
+        assert g_tau == pytest.approx(float(fd), rel=1e-4, abs=1e-6)
+        assert all(bool(jnp.all(jnp.isfinite(g))) for g in jax.tree.leaves(grad))
+
+
+def test_gradients_finite_at_hard_points(capture):
+    _, chart, events, _ = capture
+    with jax.enable_x64(True):
+        rig = _true_rig(baseline_rel=0.0, log_eps=1e-9).astype(jnp.float64)
+        data = ev.chart_data(events, chart, rig, rows_per_label=1)
+        grad = eqx.filter_grad(lambda r: jnp.sum(ev.chart_residuals(r, data) ** 2))(rig)
+        assert all(bool(jnp.all(jnp.isfinite(g))) for g in jax.tree.leaves(grad))
+
+
+def test_too_few_events_is_a_clear_error(capture):
+    truth, chart, events, _ = capture
+    few = events.take(np.arange(8))
+    with pytest.raises(ValueError, match="too few"):
+        ev.calibrate(few, chart, ev.Rig())
+
+
+def test_degenerate_chart_is_a_clear_error(capture):
+    truth, _, _, _ = capture
+    flat = ev.load_scene("gray-chart", (H, W))
+    one_level = ev.Scene(flat.palette[:1], flat.wavelengths_nm, np.zeros((H, W), int))
+    events = ev.simulate(one_level, truth, sweeps=1, key=jr.key(0))
+    with pytest.raises(ValueError, match="single reflectance level"):
+        ev.calibrate(events, one_level, ev.Rig())
+
+
+def test_chart_size_must_match(capture):
+    _, _, events, _ = capture
+    with pytest.raises(ValueError, match="chart is"):
+        ev.calibrate(events, ev.load_scene("gray-chart", (H, W + 1)), ev.Rig())
+
+
+def test_spectral_correction_recovers_a_channel_gain():
+    rng = np.random.default_rng(0)
+    ref = np.linspace(0.3, 0.9, 72)
+    gain = 1 + 0.1 * np.sin(np.arange(72) / 7)
+    cube = ref * gain * (1 + 0.01 * rng.standard_normal((5, 6, 72)))
+    f = ev.spectral_correction(cube, ref)
+    np.testing.assert_allclose(f, gain, rtol=0.01)
+    rig = ev.apply_spectral_correction(ev.Rig(), f)
+    assert rig.channel_gain is not None and len(rig.channel_gain) == 72
+    with pytest.raises(ValueError):
+        ev.apply_spectral_correction(ev.Rig(), f[:10])
+
+
+def test_cli_calibrate_writes_a_file_reconstruct_reads(tmp_path, capture):
+    truth, chart, events, info = capture
+    ev.write_events(tmp_path / "gray.npz", events)
+    evhsi = [sys.executable, "-m", "evhsi_jax.cli"]
+    out = subprocess.run(
+        [
+            *evhsi,
+            "calibrate",
+            str(tmp_path / "gray.npz"),
+            "--out",
+            str(tmp_path / "c.json"),
+        ],
+        capture_output=True,
+        text=True,
+    )
+    assert out.returncode == 0, out.stderr
+    cfg = json.loads((tmp_path / "c.json").read_text())
+    assert cfg["threshold_map"] == "c_thresholds.npz"
+    rig = ev.Rig.load(tmp_path / "c.json")
+    on, off = rig.load_threshold_maps(H, W)
+    assert on.shape == (H, W)
+    assert (
+        np.sqrt(np.mean((on - info.threshold_on) ** 2)) < 0.2 * info.threshold_on.std()
+    )
+    bad = subprocess.run(
+        [
+            *evhsi,
+            "calibrate",
+            str(tmp_path / "nope.npz"),
+            "--out",
+            str(tmp_path / "d.json"),
+        ],
+        capture_output=True,
+        text=True,
+    )
+    assert bad.returncode != 0 and "Traceback" not in bad.stderr
+    assert not (tmp_path / "d.json").exists()
