@@ -206,6 +206,7 @@ def test_reconstruction_gradients_match_finite_differences():
             jnp.asarray(b.column[sel]),
         )
         truth = scene.truth_cube(rig.grid).reshape(-1, rig.channels)[b.pixel[sel]]
+        truth = jnp.asarray(truth, jnp.float64)
 
         def loss(r):
             x = reconstruct_pixels(r, *args, width=3, fwhm_bound_nm=50.0)

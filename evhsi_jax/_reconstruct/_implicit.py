@@ -81,13 +81,14 @@ def reconstruct_pixels(
       to the recording start at sweep phase 0, ±1, real-event mask), e.g. from
       `group_pixels`.
     - `columns`: pixel columns `(n,)` (int); `width`: sensor width (for τx).
-    - `sweeps`: sweeps spanned (static); `config`: problem weights.
+    - `sweeps`: sweeps spanned (static); `config`: problem weights (default: the
+      defaults with cubic table interpolation, so derivatives in β, τx, λ0 are smooth).
     - `threshold_on`, `threshold_off`: per-pixel thresholds `(n,)`; default the rig's.
     - `fwhm_bound_nm`: static bound on the FWHM when it is being differentiated.
 
     **Returns:** x, shape `(n, M)`.
     """
-    cfg = config or ProblemConfig()
+    cfg = config or ProblemConfig(lookup_order=3)
     table = band_table(rig, fwhm_bound_nm=fwhm_bound_nm).channels(rig.grid.sub)
     offsets = rig.column_offsets(width)[columns]
     n = t_us.shape[0]

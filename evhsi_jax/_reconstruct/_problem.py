@@ -87,10 +87,13 @@ class ProblemConfig:
     - `ridge`: relative Tikhonov term keeping Q positive definite.
     - `spec_kind`: `"dct"` (paper) or `"d2"` (local second differences), see
       :func:`spectral_prior_matrix`.
+    - `lookup_order`: interpolation of the A(λc) table, 1 (linear, fast) or 3 (cubic,
+      continuous derivative — used when the reconstruction is differentiated with
+      respect to β, τx or λ0).
     """
 
-    alpha_int: float = 3e-4
-    alpha_spec: float = 1e-5
+    alpha_int: float = 1e-5
+    alpha_spec: float = 3e-6
     m_start_frac: float = 0.3
     int_points: int = 72
     int_target: str = "flat-peak"
@@ -99,6 +102,7 @@ class ProblemConfig:
     nonneg: bool = True
     ridge: float = 1e-9
     spec_kind: str = "d2"
+    lookup_order: int = 1
 
     def __post_init__(self):
         if self.int_target not in INT_TARGETS:
@@ -109,6 +113,8 @@ class ProblemConfig:
             raise ValueError("int_points must be >= 1")
         if min(self.alpha_int, self.alpha_spec, self.ridge) < 0:
             raise ValueError("weights must be >= 0")
+        if self.lookup_order not in (1, 3):
+            raise ValueError(f"lookup_order must be 1 or 3, got {self.lookup_order}")
         if self.spec_kind not in ("dct", "d2"):
             raise ValueError(f"spec_kind must be 'dct' or 'd2', got {self.spec_kind!r}")
         if not 0 < self.m_start_frac <= 1:
@@ -208,7 +214,9 @@ def pixel_system(
 
     def a_at(t_rel):
         local = jnp.mod(t_rel + t0_phase_us, period)
-        return lookup(table, rig.band_centre_nm(local, column_offset_us))
+        return lookup(
+            table, rig.band_centre_nm(local, column_offset_us), order=cfg.lookup_order
+        )
 
     u_arr, u_lv = lit_interval_us(rig, column_offset_us)
     sweep_of = jnp.floor((t_us + t0_phase_us) / period)
