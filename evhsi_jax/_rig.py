@@ -14,7 +14,9 @@ $λ_c(t) = λ_0 + β ω ((t \\bmod P) + τ_x)$. With the defaults (β = 185 nm/r
 the band crosses 360→796 nm (the channels ± 2 FWHM) in 0.75 P, and the default offsets
 $τ_x = -0.15 P · x/(W-1)$ stagger the columns over another 0.15 P, leaving 0.1 P of dark
 time before the next sweep. At 30 sweeps/s a 17.5 nm band then takes about 1 ms to cross
-a pixel, so the 50 µs refractory period costs some events on the steepest flanks.
+a pixel; consecutive events of a pixel are then ≥ ~130 µs apart on the ColorChecker, so
+the 50 µs refractory period rarely binds (it does at faster sweeps or lower thresholds,
+and the reconstruction models it either way).
 """
 
 from __future__ import annotations

@@ -127,7 +127,9 @@ def soft_event_counts(
     is :func:`exact_events_scan` (release mode), step for step.
 
     **Arguments:** as :func:`exact_events_scan`, plus `temperature` τ in log units
-    (e.g. 0.01–0.05 for calibration; must be > 0). `state` may be a soft state
+    (must be > 0; keep τ ≤ 0.01: every step of a flat trace still fires with
+    probability sigmoid(−C/τ), which at τ = 0.05 adds tens of spurious expected events
+    per sweep). `state` may be a soft state
     `(reference, release_time_us, pending_probability)`.
 
     **Returns:** `(on, off)` expected counts, each shape `(t-1, p)`, in [0, 1].

@@ -79,7 +79,9 @@ class ProblemConfig:
     - `alpha_spec`: weight of the spectral prior (tuned likewise).
     - `m_start_frac`: first penalised DCT frequency as a fraction of M (paper: 0.3).
     - `int_points`: anti-drift sample points per sweep (spread over the time the band
-      is on the pixel).
+      is on the pixel). 24, 36, 48 and 72 gave the same accuracy to 0.01° on the
+      ColorChecker, tcs and rainbow scenes; 32 keeps the Gram matrix (the main cost)
+      small.
     - `int_target`: `"linear"` (paper) or `"peak"` (see module docstring).
     - `peak_height`: excursion at a polarity flip, in thresholds (for `"peak"`).
     - `normalise`: divide rows by the intensity estimate (False: the literal paper).
@@ -95,7 +97,7 @@ class ProblemConfig:
     alpha_int: float = 1e-5
     alpha_spec: float = 3e-6
     m_start_frac: float = 0.3
-    int_points: int = 72
+    int_points: int = 32
     int_target: str = "flat-peak"
     peak_height: float = 0.5
     normalise: bool = True
@@ -333,11 +335,12 @@ def pixel_system(
 
     rows = jnp.concatenate([ev_rows, int_rows], axis=0)
     gram = rows.T @ rows
-    spec = jnp.asarray(spectral_prior_matrix(m, cfg.m_start_frac, cfg.spec_kind), dtype)
+    spec_np = spectral_prior_matrix(m, cfg.m_start_frac, cfg.spec_kind)
     spec_w = cfg.alpha_spec / (s_hat**2 if norm else 1.0)
-    prior = spec_w * spec
-    ridge = cfg.ridge * (jnp.trace(gram[:m, :m] + prior) / m + 1e-30)
-    prior = prior + ridge * jnp.eye(m, dtype=dtype)
+    # Traces without materialising a sum of two (M, M) matrices per pixel.
+    trace = jnp.sum(jnp.diagonal(gram)[:m]) + spec_w * float(np.trace(spec_np))
+    ridge = cfg.ridge * (trace / m + 1e-30)
+    prior = spec_w * jnp.asarray(spec_np, dtype) + ridge * jnp.eye(m, dtype=dtype)
     if return_gram:
         return gram.at[:m, :m].add(prior), gram[:m, m], s_hat
     return gram[:m, :m] + prior, gram[:m, m], s_hat
