@@ -535,6 +535,7 @@ def _calibrate64(
     # one τx only, so one JVP with all-ones τ tangents gives every column's norm.
     res_col = jnp.broadcast_to(dev[3][:, None], data.t_us.shape).reshape(-1)
 
+    @jax.jit
     def jcol(tangent):
         return jax.jvp(lambda q: residuals(q, False)[0], (p0,), (tangent,))[1]
 
@@ -567,16 +568,19 @@ def _calibrate64(
     def residuals_u(u, profile):
         return residuals(theta_of(u), profile)
 
+    @eqx.filter_jit
+    def _sum_sq(params, profile):
+        return jnp.sum(residuals(params, profile)[0] ** 2)
+
     def rms_of(params, profile):
-        return float(
-            jnp.sqrt(jnp.sum(residuals(params, profile)[0] ** 2) / data.events)
-        )
+        return float(jnp.sqrt(_sum_sq(params, profile) / data.events))
 
     r0 = rms_of(p0, False)
     solver = optx.LevenbergMarquardt(
         rtol=1e-7,
         atol=1e-9,
-        linear_solver=_normal_cg(rtol=1e-6, atol=1e-9),
+        # An inexact Gauss–Newton step is enough inside Levenberg–Marquardt.
+        linear_solver=_normal_cg(rtol=1e-4, atol=1e-9),
         verbose=bool(verbose),
     )
     # Stage 1: one threshold pair for all pixels. Stage 2 (per_pixel): the same fit with
@@ -629,14 +633,37 @@ def _calibrate64(
     )
 
 
+_log_steps_jit = eqx.filter_jit(chart_log_steps)
+
+
 def _log_steps(rig: Rig, data: ChartData, block: int = 4096):
-    """Model log steps of every chart event in blocks of pixels, `(n, k)` (host)."""
+    """Model log steps of every chart event in blocks of pixels, `(n, k)` (host).
+
+    Every block is padded to `block` pixels (masked), so one compilation serves all.
+    """
     traces = spectral_traces(rig, data.spectra)
     dtype = rig.fwhm_nm.dtype
+    n = data.t_us.shape[0]
+    block = min(block, n)
     out = []
-    for c0 in range(0, data.t_us.shape[0], block):
-        part = _device(data.subset(slice(c0, c0 + block)), dtype)
-        out.append(np.asarray(chart_log_steps(rig, part, traces), np.float64))
+    for c0 in range(0, n, block):
+        part = data.subset(slice(c0, c0 + block))
+        pad = block - part.t_us.shape[0]
+        if pad:
+            part = dataclasses.replace(
+                part,
+                **{
+                    k: np.pad(
+                        getattr(part, k),
+                        ((0, pad),) + ((0, 0),) * (getattr(part, k).ndim - 1),
+                    )
+                    for k in ("t_us", "polarity", "mask", "column", "pixel", "spectrum")
+                },
+            )
+        steps = np.asarray(
+            _log_steps_jit(rig, _device(part, dtype), traces), np.float64
+        )
+        out.append(steps[: block - pad])
     return np.concatenate(out)
 
 
