@@ -210,13 +210,11 @@ def cmd_evaluate(args):
 
 
 def cmd_convert(args):
-    from ._io import convert_events
+    from ._io import DecodeReport, convert_events
 
     report = convert_events(args.src, args.dst)
-    skipped = {
-        k: v for k, v in report.items() if isinstance(v, int) and v and k != "words"
-    }
-    print(f"wrote {args.dst}" + (f" (decoder report: {skipped})" if skipped else ""))
+    skipped = {k: report[k] for k in DecodeReport.DEFECTS if report.get(k)}
+    print(f"wrote {args.dst}" + (f" (skipped while decoding: {skipped})" if skipped else ""))
     return 0
 
 
