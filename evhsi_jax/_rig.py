@@ -362,19 +362,17 @@ class Rig(eqx.Module):
             "threshold_on",
             "threshold_off",
         ):
-            out[k] = float(getattr(self, k))
+            out[k] = _json_floats(getattr(self, k))
         if width is not None:
-            offs = np.asarray(self.column_offsets(width), np.float64)
-            out["column_offsets_us"] = offs.tolist()
+            out["column_offsets_us"] = _json_floats(self.column_offsets(width))
         elif self.column_offsets_us is not None:
-            offs = np.asarray(self.column_offsets_us, np.float64)
-            out["column_offsets_us"] = offs.tolist()
+            out["column_offsets_us"] = _json_floats(self.column_offsets_us)
         else:
             out["column_offsets_us"] = None
         out["threshold_sigma"] = self.threshold_sigma
-        out["refractory_us"] = float(self.refractory_us)
-        out["baseline_rel"] = float(self.baseline_rel)
-        out["log_eps"] = float(self.log_eps)
+        out["refractory_us"] = _json_floats(self.refractory_us)
+        out["baseline_rel"] = _json_floats(self.baseline_rel)
+        out["log_eps"] = _json_floats(self.log_eps)
         out["noise_rate_hz"] = self.noise_rate_hz
         out["reset_mode"] = self.reset_mode
         out["seed"] = self.seed
@@ -397,6 +395,18 @@ class Rig(eqx.Module):
         return "\n".join(
             f"  {k:20s} {_DOC[k]} (default {DEFAULTS[k]})" for k in DEFAULTS
         )
+
+
+def _json_floats(a):
+    """Leaf values as JSON numbers, float32 ones by their shortest round-trip repr
+    (0.15, not 0.15000000596046448); -0.0 becomes 0.0."""
+    arr = np.asarray(a)
+    if arr.dtype == np.float32:
+        vals = [float(np.format_float_positional(v, unique=True)) for v in arr.ravel()]
+    else:
+        vals = [float(v) for v in arr.astype(np.float64).ravel()]
+    vals = [v + 0.0 for v in vals]
+    return vals[0] if arr.ndim == 0 else vals
 
 
 def _validated(cfg: dict) -> dict:
