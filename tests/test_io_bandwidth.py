@@ -10,12 +10,28 @@ from hypothesis import strategies as st
 from evhsi_jax import EventStream
 from evhsi_jax._io import (
     EventReader,
+    _jit,
     bandwidth_summary,
     evt3_bytes,
     frame_bytes,
     nominal_event_bytes,
     write_evt3,
 )
+
+BACKENDS = [
+    pytest.param(
+        "numba",
+        marks=pytest.mark.skipif(not _jit.numba_available(), reason="no numba"),
+    ),
+    "numpy",
+]
+
+
+@pytest.fixture(scope="module", autouse=True, params=BACKENDS)
+def backend(request):
+    """Every test here runs with the compiled kernels and with the NumPy reference."""
+    with _jit.use_backend(request.param):
+        yield request.param
 
 
 def stream(seed: int, n: int, span: int, triggers: int = 0) -> EventStream:

@@ -15,6 +15,7 @@ from evhsi_jax._io import (
     DecodeError,
     EventReader,
     _evt3_encode,
+    _jit,
     describe_events,
     encode_evt3_words,
     evt3_word_count,
@@ -33,6 +34,22 @@ FAST = settings(
     max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow]
 )
 COLUMNS = ("x", "y", "p", "t_us", "trigger_t_us", "trigger_p", "trigger_id")
+
+
+BACKENDS = [
+    pytest.param(
+        "numba",
+        marks=pytest.mark.skipif(not _jit.numba_available(), reason="no numba"),
+    ),
+    "numpy",
+]
+
+
+@pytest.fixture(scope="module", autouse=True, params=BACKENDS)
+def backend(request):
+    """Every test here runs with the compiled kernels and with the NumPy reference."""
+    with _jit.use_backend(request.param):
+        yield request.param
 
 
 def random_stream(

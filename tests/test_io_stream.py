@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 from evhsi_jax import EventStream
 from evhsi_jax._io import (
     EventReader,
+    _jit,
     iter_events,
     read_events,
     read_events_window,
@@ -25,6 +26,22 @@ DATA = Path(
     os.environ.get("EVHSI_SHARED_DATA", Path(__file__).parents[2] / "shared" / "data")
 )
 COLUMNS = ("x", "y", "p", "t_us", "trigger_t_us", "trigger_p", "trigger_id")
+
+
+BACKENDS = [
+    pytest.param(
+        "numba",
+        marks=pytest.mark.skipif(not _jit.numba_available(), reason="no numba"),
+    ),
+    "numpy",
+]
+
+
+@pytest.fixture(scope="module", autouse=True, params=BACKENDS)
+def backend(request):
+    """Every test here runs with the compiled kernels and with the NumPy reference."""
+    with _jit.use_backend(request.param):
+        yield request.param
 
 
 def bursts(seed: int, n_bursts: int, *, gap_us: int = 3, triggers: int = 0):

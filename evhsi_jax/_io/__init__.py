@@ -2,7 +2,9 @@
 
 Prophesee EVT 3.0 `.raw` (read and write), EVT 2.0 `.raw` (read) and the `.npz` layout
 of DESIGN.md; bounded-memory streaming and time-window reads; sweep segmentation;
-bandwidth accounting. See each module's docstring for the format decisions.
+bandwidth accounting. See each module's docstring for the format decisions. The hot
+loops run as numba kernels by default, with the vectorised NumPy code as reference and
+fallback (`EVHSI_NO_NUMBA=1`; see `_jit`).
 """
 
 from ._bandwidth import bandwidth_summary as bandwidth_summary

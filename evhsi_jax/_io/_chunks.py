@@ -12,16 +12,19 @@ that step.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import NamedTuple
 
 import numpy as np
 
+from .._events import EventStream
 from ._report import DecodeError, DecodeReport
 
 POPCOUNT12 = np.array([bin(i).count("1") for i in range(1 << 12)], np.uint8)
 
 __all__ = [
     "DecodedChunk",
+    "as_stream",
     "ScannedChunk",
     "apply_time",
     "concat_scanned",
@@ -51,6 +54,27 @@ class DecodedChunk(NamedTuple):
             np.zeros(0, np.uint8),
             np.zeros(0, np.uint8),
         )
+
+
+_FIELDS = ("x", "y", "p", "t_us", "width", "height", "trigger_t_us", "trigger_p",
+           "trigger_id")  # fmt: skip
+_TRUSTED = tuple(f.name for f in dataclasses.fields(EventStream)) == _FIELDS
+
+
+def as_stream(c: DecodedChunk, width: int, height: int) -> EventStream:
+    """A decoded chunk as an `EventStream`, without validating it a second time.
+
+    The decoders guarantee what `EventStream.__post_init__` checks (exact dtypes, equal
+    lengths, coordinates inside the geometry, polarity 0/1, and times non-decreasing),
+    and its eight reductions over the columns cost ~20 % of reading a large file. Should
+    `EventStream` change its fields, the validating constructor is used instead.
+    """
+    if not _TRUSTED:
+        return EventStream(*c[:4], width, height, *c[4:])
+    ev = object.__new__(EventStream)
+    for name, value in zip(_FIELDS, (*c[:4], int(width), int(height), *c[4:])):
+        object.__setattr__(ev, name, value)
+    return ev
 
 
 class ScannedChunk(NamedTuple):

@@ -27,6 +27,10 @@ of 4096, the value 4095: every TIME_HIGH step is then at most 1024 forward, and 
 wrap is an adjacent 4095 → 0 pair, which all three rules decode the same way. The first
 TIME_HIGH is reached from time 0 the same way, so absolute times beyond 16.78 s survive
 too.
+
+With the compiled kernels (`_jit`, the default) each block is encoded by
+`_encode_jit.encode_block` into one reused buffer instead of the `(items, 5)` table;
+the words are the same.
 """
 
 from __future__ import annotations
@@ -37,6 +41,7 @@ from collections.abc import Iterator
 import numpy as np
 
 from .._events import EventStream, atomic_write
+from . import _jit
 from ._header import format_header
 
 __all__ = ["encode_evt3_words", "evt3_word_count", "write_evt3", "MAX_EVT3_SIZE"]
@@ -45,19 +50,28 @@ MAX_EVT3_SIZE = 2048  # 11-bit addresses
 BLOCK_EVENTS = 1 << 20  # events encoded at a time
 
 
-def _check(events: EventStream) -> None:
+def _check(events: EventStream) -> bool:
+    """Raise if `events` cannot be stored; returns whether they are time-ordered."""
     if events.width > MAX_EVT3_SIZE or events.height > MAX_EVT3_SIZE:
         raise ValueError(
             f"EVT 3.0 addresses are 11 bits: geometry {events.width}x{events.height} "
             f"exceeds {MAX_EVT3_SIZE}x{MAX_EVT3_SIZE}"
         )
-    if len(events) and int(events.t_us.min()) < 0:
+    if _jit.use_numba():  # both in one pass, without temporaries
+        from ._encode_jit import order_and_min
+
+        ordered, t_min = order_and_min(events.t_us)
+    else:
+        ordered = events.is_time_ordered()
+        t_min = int(events.t_us.min()) if len(events) else 0
+    if t_min < 0:
         raise ValueError("EVT 3.0 cannot store negative timestamps")
     if events.trigger_t_us.size:
         if int(events.trigger_t_us.min()) < 0:
             raise ValueError("EVT 3.0 cannot store negative trigger timestamps")
         if int(events.trigger_id.max()) > 15 or int(events.trigger_p.max()) > 1:
             raise ValueError("EVT 3.0 triggers need id in 0..15 and value 0/1")
+    return ordered
 
 
 def _waypoints(a: int, b: int) -> np.ndarray:
@@ -70,13 +84,17 @@ def _waypoints(a: int, b: int) -> np.ndarray:
 _SLOTS = 5  # per item, in order: TIME_HIGH, TIME_LOW, ADDR_Y, VECT_BASE_X, event word
 
 
-def _blocks(events: EventStream, reorder: bool) -> Iterator[tuple]:
+def _blocks(
+    events: EventStream, reorder: bool, ordered: bool | None = None
+) -> Iterator[tuple]:
     """The stream cut into blocks of about `BLOCK_EVENTS` events at µs boundaries (so
     no vector chain is cut), each with the triggers of its time span and the time and
     row of the previous block's last item: blocks encode independently, and the
-    temporaries stay small (fresh large allocations are costly)."""
-    _check(events)
-    ev = events.sorted_by_time()
+    temporaries stay small (fresh large allocations are costly). `ordered`: what
+    `_check` returned, when already called."""
+    if ordered is None:
+        ordered = _check(events)
+    ev = events if ordered else events.sorted_by_time()
     gt, gp, gid = ev.trigger_t_us, ev.trigger_p, ev.trigger_id
     if gt.size and np.any(np.diff(gt) < 0):
         order = np.argsort(gt, kind="stable")
@@ -213,6 +231,12 @@ def evt3_word_count(events: EventStream, *, reorder: bool = False) -> int:
     **Returns:** the word count (bytes = 2 × words).
     """
     total = 0
+    if _jit.use_numba():
+        from ._encode_jit import encode_block
+
+        for block in _blocks(events, reorder):
+            total += encode_block(*block, write=False)[0]
+        return int(total)
     for block in _blocks(events, reorder):
         _, M, extra = _plan(*block, values=False)
         total += int(np.count_nonzero(M)) + sum(v.size for _, v in extra)
@@ -230,12 +254,24 @@ def encode_evt3_words(events: EventStream, *, reorder: bool = False) -> np.ndarr
 
     **Returns:** `uint16` array of words in file order.
     """
-    parts = list(_encode_blocks(events, reorder))
+    parts = [w.copy() for w in _encode_blocks(events, reorder)]
     return np.concatenate(parts) if parts else np.zeros(0, np.uint16)
 
 
-def _encode_blocks(events: EventStream, reorder: bool) -> Iterator[np.ndarray]:
-    for block in _blocks(events, reorder):
+def _encode_blocks(
+    events: EventStream, reorder: bool, ordered: bool | None = None
+) -> Iterator[np.ndarray]:
+    """The words block by block (valid until the next block is asked for: the
+    compiled path reuses one buffer)."""
+    if _jit.use_numba():
+        from ._encode_jit import encode_block
+
+        buffer = None
+        for block in _blocks(events, reorder, ordered):
+            words, buffer = encode_block(*block, buffer=buffer)
+            yield words
+        return
+    for block in _blocks(events, reorder, ordered):
         W, M, extra = _plan(*block, values=True)
         out = W[M]
         if extra:
@@ -264,11 +300,11 @@ def write_evt3(
     - `extra_header`: more `% key value` header lines.
     """
     header = format_header("evt3", events.width, events.height, extra_header)
-    _check(events)  # before the file is created
+    ordered = _check(events)  # before the file is created
 
     def fill(f) -> None:
         f.write(header)
-        for words in _encode_blocks(events, reorder):  # streamed, block by block
-            f.write(words.astype("<u2", copy=False).tobytes())
+        for words in _encode_blocks(events, reorder, ordered):  # block by block
+            f.write(words.astype("<u2", copy=False).data)
 
     atomic_write(path, fill)

@@ -10,11 +10,19 @@ consecutive chunks run in parallel threads (NumPy releases the GIL in its loops)
 the main thread reads the file, predicts states and applies the time fix-ups in order.
 The wrap count and the running maxima are settled in `apply_time`, so the result — and
 the report — are the same as decoding the chunks one after the other.
+
+With the compiled kernels (`_jit`, the default) a chunk is decoded in one sequential
+pass on the calling thread instead (the state goes in and comes out of the kernel), and
+`decode_range` decodes a whole byte range in one call into arrays sized once, which
+avoids concatenating chunks; `workers` then has no effect.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import mmap
+import os
 from collections import deque
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
@@ -22,18 +30,20 @@ from pathlib import Path
 
 import numpy as np
 
+from . import _jit
 from ._chunks import DecodedChunk, ScannedChunk, apply_time, expand_events
 from ._evt2 import Evt2State, carry_evt2_state, scan_evt2_words
 from ._evt3_decode import Evt3State, carry_evt3_state, scan_evt3_words
 from ._report import DecodeError, DecodeReport
 
-__all__ = ["Codec", "CODECS", "decode_chunks"]
+__all__ = ["Codec", "CODECS", "decode_chunks", "decode_range"]
 
 
 @dataclasses.dataclass(frozen=True)
 class Codec:
     """The per-format pieces the pipeline needs."""
 
+    key: str
     name: str
     word_bytes: int
     dtype: str
@@ -45,10 +55,10 @@ class Codec:
 
 CODECS = {
     "evt3": Codec(
-        "EVT 3.0", 2, "<u2", 24, Evt3State, scan_evt3_words, carry_evt3_state
+        "evt3", "EVT 3.0", 2, "<u2", 24, Evt3State, scan_evt3_words, carry_evt3_state
     ),
     "evt2": Codec(
-        "EVT 2.0", 4, "<u4", 34, Evt2State, scan_evt2_words, carry_evt2_state
+        "evt2", "EVT 2.0", 4, "<u4", 34, Evt2State, scan_evt2_words, carry_evt2_state
     ),
 }
 
@@ -119,13 +129,18 @@ def decode_chunks(
     - `report`: counters, updated.
     - `chunk_bytes`, `width`, `height`, `strict`: see `EventReader`.
     - `workers`: threads (1: everything in turn on the calling thread).
-    - `expand`: when False, yield the `ScannedChunk` with final times instead of
-      decoded events (indexing needs no events).
+    - `expand`: when False, yield `(event words that keep their events, triggers)`
+      instead of decoded events (indexing needs no events; geometry is not checked).
     - `snapshots`: yield a copy of the state at each chunk's start (serial only).
 
     **Returns:** an iterator of `(offset, nbytes, state_before, chunk)`.
     """
     words = _read_words(path, codec, offset, stop, chunk_bytes, report, strict)
+    if _jit.use_numba():
+        yield from _decode_chunks_jit(
+            path, codec, words, state, report, width, height, strict, expand, snapshots
+        )
+        return
 
     def scan(w: np.ndarray, st, r: DecodeReport, at: int) -> ScannedChunk:
         try:
@@ -153,7 +168,7 @@ def decode_chunks(
             epoch = state.epoch
             sc = scan(w, state, report, at)
             sc = apply_time(sc, epoch << codec.epoch_bits, state, report)
-            yield at, w.nbytes, before, finish(sc, report) if expand else sc
+            yield at, w.nbytes, before, finish(sc, report) if expand else _counts(sc)
         return
 
     # Parallel: scans are submitted with predicted start states; `apply_time` and the
@@ -207,3 +222,119 @@ def decode_chunks(
             settle_oldest()
         while done:
             yield release_oldest()
+
+
+def _counts(sc: ScannedChunk) -> tuple[int, int]:
+    """Event words that keep their events, and triggers, of a scanned chunk."""
+    n = int(sc.epos.size) if sc.mask is None else int(np.count_nonzero(sc.mask))
+    return n, int(sc.triggers[0].size)
+
+
+def _decode_chunks_jit(
+    path, codec, words, state, report, width, height, strict, expand, snapshots
+) -> Iterator[tuple]:
+    """`decode_chunks` with the compiled kernels (serial)."""
+    from . import _decode_jit
+
+    for at, w in words:
+        before = state.copy() if snapshots else None
+        try:
+            if expand:
+                out = _decode_jit.decode_words(
+                    codec.key, w, state, width=width, height=height, report=report,
+                    strict=strict, byte_offset=at,
+                )  # fmt: skip
+            else:
+                out = _decode_jit.count_words(
+                    codec.key, w, state, report=report, strict=strict, byte_offset=at
+                )
+        except DecodeError as err:
+            raise DecodeError(f"{path}: {err}") from None
+        yield at, w.nbytes, before, out
+
+
+def _concat(parts: list[DecodedChunk]) -> DecodedChunk:
+    """The chunks of a range joined into one."""
+    if not parts:
+        return DecodedChunk.empty()
+    if len(parts) == 1:
+        return parts[0]
+    return DecodedChunk(*(np.concatenate(cols) for cols in zip(*parts)))
+
+
+@contextlib.contextmanager
+def _mapped(path: Path, offset: int, stop: int) -> Iterator[memoryview]:
+    """The bytes `[offset, stop)` of a file, memory-mapped (read in, where mapping is
+    not possible): no copy and no fresh pages to fault in."""
+    with open(path, "rb") as f:
+        size = max(0, min(stop, os.fstat(f.fileno()).st_size) - offset)
+        if size == 0:
+            yield memoryview(b"")
+            return
+        try:
+            mm = mmap.mmap(f.fileno(), offset + size, access=mmap.ACCESS_READ)
+        except (OSError, ValueError):
+            f.seek(offset)
+            yield memoryview(f.read(size))
+            return
+    view = memoryview(mm)[offset:]
+    try:
+        yield view
+    finally:
+        try:
+            view.release()
+            mm.close()
+        except BufferError:  # arrays on it still referenced (an error's traceback)
+            pass  # the map is closed when they are collected
+
+
+def decode_range(
+    path: Path,
+    codec: Codec,
+    offset: int,
+    stop: int,
+    state,
+    report: DecodeReport,
+    *,
+    chunk_bytes: int,
+    width: int,
+    height: int,
+    strict: bool = False,
+    workers: int = 1,
+) -> DecodedChunk:
+    """All events of `path[offset:stop]` as one chunk (arguments as `decode_chunks`).
+
+    With the compiled kernels the range is read and decoded in one call (arrays sized
+    once, no concatenation); results, report and strict-mode errors are those of
+    decoding it in chunks of `chunk_bytes`.
+    """
+    if not _jit.use_numba():
+        chunks = decode_chunks(
+            path, codec, offset, stop, state, report, chunk_bytes=chunk_bytes,
+            width=width, height=height, strict=strict, workers=workers,
+        )  # fmt: skip
+        return _concat([c for *_, c in chunks])
+    from . import _decode_jit
+
+    wb = codec.word_bytes
+    error = None
+    with _mapped(path, offset, stop) as data:
+        partial = len(data) % wb
+        try:
+            out = _decode_jit.decode_all(
+                codec.key, np.frombuffer(data, codec.dtype, count=len(data) // wb),
+                state, width=width, height=height, report=report, strict=strict,
+                byte_offset=offset, chunk_bytes=chunk_bytes,
+            )  # fmt: skip
+        except DecodeError as err:  # raised below, once the map is released
+            error = str(err)
+    if error is not None:
+        raise DecodeError(f"{path}: {error}")
+    if partial:
+        if strict:
+            raise DecodeError(
+                f"{path}: file ends with {partial} byte(s) of a partial "
+                f"{8 * wb}-bit word (strict mode)"
+            )
+        report.trailing_bytes += partial
+    return out

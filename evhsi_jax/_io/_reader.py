@@ -4,7 +4,8 @@
 file and hands out `EventStream` chunks. Raw files are read `chunk_bytes` at a time; the
 decoder state (row, vector base, time base, wrap count, running maximum) is carried from
 chunk to chunk, so memory stays bounded by the chunk size and the result does not depend
-on where chunks are cut (nor on the number of decoding threads, see `_pipeline`).
+on where chunks are cut (nor on the number of decoding threads, nor on whether the
+compiled kernels or the NumPy reference decode them; see `_pipeline` and `_jit`).
 
 A time window `[t0, t1)` is read without decoding the whole file: the first window read
 makes one cheap pass that advances the decoder state without expanding events and
@@ -23,11 +24,11 @@ from pathlib import Path
 import numpy as np
 
 from .._events import EventStream
-from ._chunks import DecodedChunk
+from ._chunks import DecodedChunk, as_stream
 from ._evt2 import Evt2State
 from ._evt3_decode import Evt3State
 from ._header import DEFAULT_GEOMETRY, MAX_HEADER_BYTES, RawHeader, parse_header
-from ._pipeline import CODECS, decode_chunks
+from ._pipeline import CODECS, decode_chunks, decode_range
 from ._report import DecodeReport
 
 __all__ = [
@@ -63,14 +64,17 @@ class EventReader:
     **Arguments:**
 
     - `path`: a `.raw` (Prophesee EVT 3.0 or EVT 2.0) or `.npz` (DESIGN.md layout) file.
-    - `chunk_bytes`: bytes decoded per chunk (raw files); bounds memory.
+    - `chunk_bytes`: bytes decoded per chunk when iterating (raw files); bounds memory.
+      `read()` and `read_window()` with the compiled kernels decode their byte range
+      in one call (results as if chunked; the input is memory-mapped).
     - `strict`: raise `ValueError` on the first defect instead of skipping and counting
       it in `report` (see `DecodeReport`).
     - `geometry`: `(width, height)` overriding the header (raw files).
     - `format`: `"evt3"` or `"evt2"`, overriding the header; needed for a raw file whose
       header does not name its format.
-    - `workers`: decoding threads; `None` uses two for chunks of 64 KiB and more when
-      there are at least four of them (the result does not depend on it, see
+    - `workers`: decoding threads of the NumPy path (`EVHSI_NO_NUMBA=1`; the compiled
+      kernels decode on the calling thread); `None` uses two for chunks of 64 KiB and
+      more when there are at least four of them (the result does not depend on it, see
       `_pipeline`).
 
     After reading, `report` holds the counts of what was decoded and skipped.
@@ -184,11 +188,6 @@ class EventReader:
     ) -> Iterator[tuple]:
         """`decode_chunks` over `[offset, stop)` with this reader's settings."""
         stop = self.file_bytes if stop is None else stop
-        workers = self.workers
-        if workers is None:  # threads pay off for large chunks of large ranges
-            big = self.chunk_bytes >= PIPELINE_MIN_CHUNK
-            many = stop - offset >= 4 * self.chunk_bytes
-            workers = min(2, os.cpu_count() or 1) if big and many else 1
         return decode_chunks(
             self.path,
             CODECS[self.format],
@@ -196,16 +195,42 @@ class EventReader:
             stop,
             state,
             report,
+            **self._settings(offset, stop),
+            **kwargs,
+        )
+
+    def _settings(self, offset: int, stop: int) -> dict:
+        workers = self.workers
+        if workers is None:  # threads pay off for large chunks of large ranges
+            big = self.chunk_bytes >= PIPELINE_MIN_CHUNK
+            many = stop - offset >= 4 * self.chunk_bytes
+            workers = min(2, os.cpu_count() or 1) if big and many else 1
+        return dict(
             chunk_bytes=self.chunk_bytes,
             width=self.width,
             height=self.height,
             strict=self.strict,
             workers=workers,
-            **kwargs,
         )
 
+    def _range(
+        self, offset: int, stop: int, state: Evt3State | Evt2State
+    ) -> EventStream:
+        """`[offset, stop)` decoded as one stream, into `self.report`."""
+        self.report = DecodeReport()
+        chunk = decode_range(
+            self.path,
+            CODECS[self.format],
+            offset,
+            stop,
+            state,
+            self.report,
+            **self._settings(offset, stop),
+        )
+        return self._stream(chunk)
+
     def _stream(self, c: DecodedChunk) -> EventStream:
-        return EventStream(*c[:4], self.width, self.height, *c[4:])
+        return as_stream(c, self.width, self.height)
 
     def __iter__(self) -> Iterator[EventStream]:
         """Chunks of the file in order, each an `EventStream` (empty chunks skipped)."""
@@ -234,12 +259,7 @@ class EventReader:
         """The whole file as one `EventStream`."""
         if self._npz is not None:
             return self._npz
-        self.report = DecodeReport()
-        parts = [
-            c
-            for *_, c in self._decoded(self.data_offset, self._new_state(), self.report)
-        ]
-        return self._stream(_concat(parts))
+        return self._range(self.data_offset, self.file_bytes, self._new_state())
 
     # --- time windows ---
     def build_index(self) -> None:
@@ -249,7 +269,7 @@ class EventReader:
         index = []
         state = self._new_state()
         report = DecodeReport()  # the pass's own: `self.report` describes reads
-        for offset, nbytes, before, sc in self._decoded(
+        for offset, nbytes, before, (n_events, n_triggers) in self._decoded(
             self.data_offset, state, report, expand=False, snapshots=True
         ):
             index.append(
@@ -261,10 +281,8 @@ class EventReader:
                     t_hi=state.last_t,
                     g_lo=before.last_trig_t,
                     g_hi=state.last_trig_t,
-                    n_events=int(np.count_nonzero(sc.mask))
-                    if sc.mask is not None
-                    else int(sc.epos.size),
-                    n_triggers=int(sc.triggers[0].size),
+                    n_events=n_events,
+                    n_triggers=n_triggers,
                 )
             )
         self._index = index
@@ -285,36 +303,20 @@ class EventReader:
         if self._npz is not None:
             return self._npz.time_window(t0_us, t1_us)
         self.build_index()
-        self.report = DecodeReport()
         wanted = [
             i
             for i, cp in enumerate(self._index)
             if (cp.n_events and cp.t_hi >= t0_us and cp.t_lo < t1_us)
             or (cp.n_triggers and cp.g_hi >= t0_us and cp.g_lo < t1_us)
         ]
-        parts = []
-        if wanted:  # a contiguous run of chunks (times only grow): decode it
-            first, last = self._index[wanted[0]], self._index[wanted[-1]]
-            parts = [
-                c
-                for *_, c in self._decoded(
-                    first.offset,
-                    first.state.copy(),
-                    self.report,
-                    stop=last.offset + last.nbytes,
-                )
-            ]
-        if not parts:
+        if not wanted:
+            self.report = DecodeReport()
             return self._stream(DecodedChunk.empty())
-        return self._stream(_concat(parts)).time_window(t0_us, t1_us)
-
-
-def _concat(parts: list[DecodedChunk]) -> DecodedChunk:
-    if not parts:
-        return DecodedChunk.empty()
-    if len(parts) == 1:
-        return parts[0]
-    return DecodedChunk(*(np.concatenate(cols) for cols in zip(*parts)))
+        # A contiguous run of chunks (times only grow): decode it.
+        first, last = self._index[wanted[0]], self._index[wanted[-1]]
+        stop = last.offset + last.nbytes
+        part = self._range(first.offset, stop, first.state.copy())
+        return part.time_window(t0_us, t1_us)
 
 
 def open_events(path: str | os.PathLike, **kwargs) -> EventReader:

@@ -1,0 +1,97 @@
+"""Choosing between the compiled (numba) kernels and the vectorised NumPy reference.
+
+The hot loops of the event-file layer — EVT 3.0 and EVT 2.0 decoding, EVT 3.0 encoding —
+exist twice: as vectorised NumPy (`_evt3_decode`, `_evt2`, `_evt3_encode`; the reference,
+documented there) and as numba kernels (`_decode_jit`, `_encode_jit`) that make one
+sequential pass carrying the same state word by word. Both give bit-identical events,
+words and `DecodeReport` counters, and raise the same `DecodeError` in strict mode (the
+tests run every case through both). The kernels are the default when numba imports;
+`EVHSI_NO_NUMBA=1` (or `use_backend("numpy")`) selects the NumPy path.
+
+numba is imported lazily, on the first decode or encode, so `import evhsi_jax` does not
+pay for it, and an import failure (numba missing, or built for another NumPy) only means
+the NumPy path is used. Kernels are compiled on first use and cached on disk
+(`cache=True`: next to this module, or numba's user-wide cache folder when the package
+is not writable; without any writable location they are compiled once per process).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from collections.abc import Callable, Iterator
+
+import numpy as np
+
+__all__ = ["numba_available", "use_numba", "use_backend", "njit", "readonly"]
+
+ENV_DISABLE = "EVHSI_NO_NUMBA"
+_numba_ok: bool | None = None
+_forced: str | None = None  # "numba" / "numpy" inside `use_backend`
+
+
+def numba_available() -> bool:
+    """True when numba imports (checked once per process)."""
+    global _numba_ok
+    if _numba_ok is None:
+        try:
+            import numba  # noqa: F401
+        except Exception:  # missing, or incompatible with this NumPy
+            _numba_ok = False
+        else:
+            _numba_ok = True
+    return _numba_ok
+
+
+def use_numba() -> bool:
+    """Whether decoders and encoders use the compiled kernels now."""
+    if _forced is not None:
+        return _forced == "numba"
+    flag = os.environ.get(ENV_DISABLE, "").strip().lower()
+    if flag not in ("", "0", "false", "no"):
+        return False
+    return numba_available()
+
+
+@contextlib.contextmanager
+def use_backend(name: str) -> Iterator[None]:
+    """Run the block with `"numba"` or `"numpy"` kernels (tests and benchmarks).
+
+    **Arguments:**
+
+    - `name`: `"numba"` (raises `RuntimeError` if numba is unavailable) or `"numpy"`.
+    """
+    global _forced
+    if name not in ("numba", "numpy"):
+        raise ValueError(f"backend must be 'numba' or 'numpy', got {name!r}")
+    if name == "numba" and not numba_available():
+        raise RuntimeError("numba is not available")
+    before, _forced = _forced, name
+    try:
+        yield
+    finally:
+        _forced = before
+
+
+def njit(fn: Callable | None = None, *, inline: bool = False) -> Callable:
+    """`numba.njit(cache=True, nogil=True)`, without the cache when no folder for it is
+    writable (numba raises then instead of falling back). `inline=True`: inlined into
+    its callers by numba (`inline="always"`; such helpers are not cached themselves)."""
+    import numba
+
+    if fn is None:
+        return lambda f: njit(f, inline=inline)
+    if inline:
+        return numba.njit(inline="always")(fn)
+    try:
+        return numba.njit(cache=True, nogil=True)(fn)
+    except RuntimeError:
+        return numba.njit(nogil=True)(fn)
+
+
+def readonly(a: np.ndarray, dtype) -> np.ndarray:
+    """`a` as a contiguous read-only array of `dtype`: the kernels see one array type
+    whatever the caller holds, so each compiles (and is cached) once."""
+    a = np.ascontiguousarray(a, dtype=dtype).view()
+    a.flags.writeable = False
+    return a
