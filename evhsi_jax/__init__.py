@@ -88,6 +88,20 @@ from ._calibrate import (
 )
 from ._cubefile import load_cube as load_cube
 from ._cubefile import save_cube as save_cube
+from ._design import DesignLimits as DesignLimits
+from ._design import DesignParams as DesignParams
+from ._design import DesignProblem as DesignProblem
+from ._design import DesignResult as DesignResult
+from ._design import DesignSpace as DesignSpace
+from ._design import constraint_values as constraint_values
+from ._design import design_loss as design_loss
+from ._design import design_problem as design_problem
+from ._design import design_value_and_grad as design_value_and_grad
+from ._design import evaluate_design as evaluate_design
+from ._design import optimise_design as optimise_design
+from ._design import save_trajectory as save_trajectory
+from ._design import training_scene as training_scene
+from ._design import training_spectra as training_spectra
 from ._events import EventStream as EventStream
 from ._illumination import (
     BandTable as BandTable,

@@ -180,6 +180,7 @@ def pixel_system(
     sweeps: int,
     *,
     return_gram: bool = False,
+    event_scale: Float[ArrayLike, " k"] | None = None,
 ):
     """Assemble one pixel's $Q$ (M×M) and $q$ (M) with objective $x^TQx + 2q^Tx$.
 
@@ -197,6 +198,9 @@ def pixel_system(
     - `sweeps`: number of sweeps the recording spans (static).
     - `return_gram`: return the augmented Gram matrix `(M+1, M+1)` (priors added to its
       x block) in place of Q.
+    - `event_scale`: optional factor per event row (default 1; the square root of a
+      row weight), e.g. the smooth existence weights of marginal events in design
+      studies (`evhsi_jax._design`).
 
     **Returns:** `(Q, q, scale)` — shapes `(M, M)`, `(M,)`, and the brightness
     estimate $\\hat s$ used by the spectral prior.
@@ -253,6 +257,8 @@ def pixel_system(
 
     norm = cfg.normalise
     w_ev = jnp.where(mask, 1.0 / i_hat if norm else 1.0, 0.0)
+    if event_scale is not None:
+        w_ev = w_ev * event_scale
     ev_rows = (
         jnp.concatenate(
             [a_ev - ratio[:, None] * a_ref, (c1 * (1.0 - ratio))[:, None]], axis=1

@@ -1,0 +1,136 @@
+"""The gradient used for design: pathwise where the error is smooth, likelihood-ratio
+where it moves in integer steps.
+
+The error of a reconstruction from events changes with the design in two ways: events
+*move* (smooth: the implicit-function derivative of :mod:`._events` follows it through
+the QP) and events *appear or vanish* (jumps). The count is governed by the threshold C
+and the constant light c — lowering either adds events everywhere, the main way they
+lower the error — and only negligibly by the band (FWHM) or the sweep (β, λ0, f,
+through the refractory time). A pathwise derivative never sees a jump: measured on
+the training set, it gets the sign of ∂error/∂C wrong at high thresholds (few events)
+and its size ~3× off elsewhere (see experiments/DESIGN_STUDY.md).
+
+So the loss is the *expected* error over the sensor's per-pixel threshold mismatch
+and the constant light's non-uniformity, $F(θ) = E_z[\\,\\overline{e}(θ, z)]$ with
+$C_p = C e^{σ_C z_{C,p}}$, $c_p = c e^{σ_c z_{c,p}}$ (both known to the
+reconstruction), and
+
+- $∂F/∂\\log C$, $∂F/∂\\log c$ by the antithetic likelihood-ratio (score-function)
+  estimator $E[(\\bar e(+z) - \\bar e(-z))\\,z]/(2σ)$ per pixel — unbiased for
+  $F$, jumps included (the density of $\\log C_p$ depends on $\\log C$, the pixel's
+  error need not be continuous);
+- the other four derivatives pathwise (autodiff through the events' implicit
+  function, the QP's implicit VJP and the band table), averaged over $±z$;
+- the hardware penalties by autodiff, the event count from the smooth existence
+  weights of :mod:`._events` (its derivative matches finite differences of the exact
+  count).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+from jaxtyping import Array, Float, PRNGKeyArray
+
+from ._objective import DesignProblem, design_loss
+from ._space import PARAM_NAMES, DesignParams, constraint_values, penalty
+
+__all__ = ["design_value_and_grad", "SCORE_PARAMS"]
+
+#: Parameters whose error derivative comes from the likelihood-ratio estimator.
+SCORE_PARAMS = ("threshold", "baseline_rel")
+
+
+def _parts(problem: DesignProblem, u: DesignParams, z: Float[Array, "p 2"]):
+    """Per-pixel errors at ±z, the log mean error and the penalty (all of u)."""
+    params = problem.space.from_unconstrained(u)
+    _, a_plus = design_loss(problem, params, z)
+    _, a_minus = design_loss(problem, params, -z)
+    mse = 0.5 * (jnp.mean(a_plus["pixel_mse"]) + jnp.mean(a_minus["pixel_mse"]))
+    n_mean = 0.5 * (a_plus["events_per_pixel"] + a_minus["events_per_pixel"])
+    rig = problem.rig(params)
+    cons = constraint_values(params, n_mean, rig, problem.limits)
+    pen = penalty(cons, problem.limits)
+    aux = {
+        "e_plus": a_plus["pixel_mse"],
+        "e_minus": a_minus["pixel_mse"],
+        "mse": mse,
+        "events_per_pixel": n_mean,
+        "exact_events_per_pixel": 0.5
+        * (a_plus["exact_events_per_pixel"] + a_minus["exact_events_per_pixel"]),
+        "truncated": a_plus["truncated"] + a_minus["truncated"],
+        "constraints": cons,
+        "penalty": pen,
+    }
+    return jnp.stack([jnp.log(mse), pen]), aux
+
+
+def design_value_and_grad(
+    problem: DesignProblem,
+    u: DesignParams,
+    *,
+    key: PRNGKeyArray,
+    score: bool = True,
+):
+    """The smoothed design loss and its gradient in the box's unconstrained space.
+
+    **Arguments:**
+
+    - `problem`: from :func:`design_problem`; `u`: unconstrained design
+      (`problem.space.to_unconstrained`).
+    - `key`: draws the jitter z (one per training pixel and quantity, antithetic).
+    - `score`: use the likelihood-ratio estimator for C and c (False: pathwise for
+      all six — for comparison).
+
+    **Returns:** `(loss, grad, aux)` — $\\log \\bar e + $ penalty, its gradient
+    (a :class:`DesignParams` of unconstrained derivatives), and `aux` with
+    `log_mse`, `psnr_db`, `events_per_pixel`, `exact_events_per_pixel`,
+    `event_rate_ev_s`, `truncated`, `constraints`, `penalty`.
+    """
+    n = problem.truth.shape[0]
+    z = jr.normal(key, (n, 2), problem.truth.dtype)
+    values, vjp, aux = jax.vjp(lambda v: _parts(problem, v, z), u, has_aux=True)
+    one = jnp.ones((), values.dtype)
+    zero = jnp.zeros((), values.dtype)
+    (g_err,) = vjp(jnp.stack([one, zero]))
+    (g_pen,) = vjp(jnp.stack([zero, one]))
+    if score:
+        diff = aux["e_plus"] - aux["e_minus"]
+        repl = {}
+        for name, col, spread in (
+            ("threshold", 0, problem.threshold_spread),
+            ("baseline_rel", 1, problem.light_spread),
+        ):
+            d_log = jnp.mean(diff * z[:, col]) / (2.0 * spread) / aux["mse"]
+            # d log(param) / du of the sigmoid box (log scale for C and c).
+            dlog_du = jax.grad(
+                lambda v, name=name: jnp.log(
+                    getattr(
+                        problem.space.from_unconstrained(_with(u, name, v)),
+                        name,
+                    )
+                )
+            )(getattr(u, name))
+            repl[name] = d_log * dlog_du
+        g_err = DesignParams(*(repl.get(k, getattr(g_err, k)) for k in PARAM_NAMES))
+    grad = jax.tree.map(jnp.add, g_err, g_pen)
+    log_mse = values[0]
+    params = problem.space.from_unconstrained(u)
+    out = {
+        "log_mse": log_mse,
+        "psnr_db": -10.0 * log_mse / jnp.log(10.0),
+        "events_per_pixel": aux["events_per_pixel"],
+        "exact_events_per_pixel": aux["exact_events_per_pixel"],
+        "event_rate_ev_s": aux["events_per_pixel"]
+        * problem.limits.sensor_pixels
+        * params.sweep_rate_hz,
+        "truncated": aux["truncated"],
+        "constraints": aux["constraints"],
+        "penalty": aux["penalty"],
+    }
+    return values[0] + values[1], grad, out
+
+
+def _with(u: DesignParams, name: str, v) -> DesignParams:
+    return DesignParams(*(v if k == name else getattr(u, k) for k in PARAM_NAMES))
