@@ -102,6 +102,12 @@ from ._design import optimise_design as optimise_design
 from ._design import save_trajectory as save_trajectory
 from ._design import training_scene as training_scene
 from ._design import training_spectra as training_spectra
+from ._dynamic import DYNAMIC_SCENES as DYNAMIC_SCENES
+from ._dynamic import changed_pixels as changed_pixels
+from ._dynamic import dynamic_scene as dynamic_scene
+from ._dynamic import iridescent_reflectance as iridescent_reflectance
+from ._dynamic import moving_chart as moving_chart
+from ._dynamic import truth_cubes as truth_cubes
 from ._events import EventStream as EventStream
 from ._illumination import (
     BandTable as BandTable,
@@ -230,6 +236,9 @@ from ._scenes import load_scene as load_scene
 from ._scenes import parse_size as parse_size
 from ._sensor import exact_events_scan as exact_events_scan
 from ._sensor import soft_event_counts as soft_event_counts
+from ._shard import initialize_distributed as initialize_distributed
+from ._shard import is_main_process as is_main_process
+from ._shard import pixel_mesh as pixel_mesh
 from ._simulate import (
     SimulationInfo as SimulationInfo,
 )
@@ -254,5 +263,11 @@ from ._spectra import (
 from ._spectra import (
     resample as resample,
 )
+from ._stream import StreamResult as StreamResult
+from ._stream import iter_sweep_cubes as iter_sweep_cubes
+from ._stream import load_sweep_index as load_sweep_index
+from ._stream import reconstruct_sweeps as reconstruct_sweeps
+from ._stream import sweep_file_name as sweep_file_name
+from ._stream import write_preview_gif as write_preview_gif
 
 __version__ = "0.1.0"

@@ -21,6 +21,7 @@ import numpy as np
 from jaxtyping import PRNGKeyArray
 from tqdm.auto import tqdm
 
+from . import _shard
 from ._events import EventStream
 from ._illumination import BandTable, band_table, lookup
 from ._rig import Rig
@@ -102,8 +103,10 @@ def _windows(rig, table: BandTable, offsets, n_samples, dt, chunk_columns):
     speed = float(rig.beta_nm_per_rad * rig.omega_rad_per_us)
     margin = 3.0 * max(float(rig.fwhm_nm), 4.0)
     lo = max(table.lo_nm, rig.grid.start_nm - margin)
-    hi = min(table.lo_nm + table.step_nm * (table.values.shape[0] - 1),
-             rig.grid.stop_nm + margin)
+    hi = min(
+        table.lo_nm + table.step_nm * (table.values.shape[0] - 1),
+        rig.grid.stop_nm + margin,
+    )
     t_lo = (lo - lam0) / speed - offsets
     t_hi = (hi - lam0) / speed - offsets
     j_lo = np.clip(np.floor(t_lo / dt).astype(int) - 1, 0, n_samples)
@@ -198,6 +201,7 @@ def simulate(
     chunk_columns: int = 16,
     progress: bool = False,
     return_info: bool = False,
+    mesh=None,
     key: PRNGKeyArray,
 ):
     """Simulate the event camera watching `scene` under the sweeping rainbow.
@@ -212,6 +216,9 @@ def simulate(
     - `chunk_columns`: columns per chunk (memory ∝ chunk × window length).
     - `progress`: show a progress bar.
     - `return_info`: also return a :class:`SimulationInfo` (threshold maps, …).
+    - `mesh`: a `jax.sharding.Mesh` (:func:`evhsi_jax.pixel_mesh`): run its
+      `mesh.size` column chunks at once, one per device; the events equal the
+      single-device run's. Default: one device.
     - `key`: PRNG key for thresholds and noise events.
 
     **Returns:** an :class:`EventStream` in time order (and the info if asked).
@@ -258,7 +265,6 @@ def simulate(
         n_chunks, chunk_columns
     )
     dtype = fine.values.dtype
-    states = [None] * n_chunks
     out_cols = {k: [] for k in ("x", "y", "p", "t")}
     bar = tqdm(
         total=sweeps * n_chunks,
@@ -266,45 +272,66 @@ def simulate(
         unit="chunk",
         desc=f"simulate {h}x{w}x{sweeps}",
     )
+    groups = _shard.chunk_groups(n_chunks, mesh)  # one chunk each without a mesh
+    group_states = [None] * len(groups)
     for s_idx, sc in enumerate(scenes):
         tab_vals, pal = basis(sc)
         use_palette = pal.shape[0] < h
         pal_j = jnp.asarray(pal, dtype)
-        for ci in range(n_chunks):
+
+        def chunk_inputs(ci, sc=sc, pal_j=pal_j, use_palette=use_palette):
             cols = col_index[ci]
             t_local = jnp.asarray((starts[ci] + np.arange(length)) * dt, dtype)
             lab = sc.labels[:, cols].T  # (c, h)
             spectra = pal_j if use_palette else pal_j[jnp.asarray(lab)]
-            state = states[ci]
-            if state is not None:  # carry over: times relative to this sweep's start
-                r, t_free, pend = state
-                state = (r, t_free - period, pend)
-            fired, tc, up, states[ci] = _chunk_kernel(
-                rig,
-                tab_vals,
-                fine.lo_nm,
+            return (
                 t_local,
                 jnp.asarray(offsets[cols], dtype),
                 spectra,
                 jnp.asarray(lab),
                 jnp.asarray(thr_on[:, cols].T.reshape(-1)),
                 jnp.asarray(thr_off[:, cols].T.reshape(-1)),
-                state,
             )
-            fired = np.asarray(fired)
-            step, pix = np.nonzero(fired)
-            col_local, row = np.divmod(pix, h)
-            keep = col_local < w - ci * chunk_columns  # drop padded columns
-            step, pix = step[keep], pix[keep]
-            col_local, row = col_local[keep], row[keep]
-            out_cols["x"].append(cols[col_local].astype(np.uint16))
-            out_cols["y"].append(row.astype(np.uint16))
-            out_cols["p"].append(np.asarray(up)[step, pix].astype(np.uint8))
-            # Index first, then widen: converting the whole (t, pixels) array to
-            # float64 cost ~90 MB of copying per full-height chunk.
-            t_abs = s_idx * period + np.asarray(tc)[step, pix].astype(np.float64)
-            out_cols["t"].append(np.floor(t_abs).astype(np.int64))
-            bar.update(1)
+
+        for gi, group in enumerate(groups):
+            state = group_states[gi]
+            if state is not None:  # carry over: times relative to this sweep's start
+                r, t_free, pend = state
+                state = (r, t_free - period, pend)
+            ins = [chunk_inputs(ci) for ci in group]
+            if mesh is None:
+                *out, group_states[gi] = _chunk_kernel(
+                    rig, tab_vals, fine.lo_nm, *ins[0], state
+                )
+                outs = [out]
+            else:
+                t_loc, offs, spectra, lab, con, coff = (np.stack(a) for a in zip(*ins))
+                spectra = pal_j if use_palette else spectra
+                *out, group_states[gi] = _shard.scan_chunks_sharded(
+                    mesh, rig, tab_vals, fine.lo_nm, spectra, t_loc, offs, lab, con,
+                    coff, state,
+                )  # fmt: skip
+                outs = list(zip(*out))
+            done = set()
+            for ci, (fired, tc, up) in zip(group, outs):
+                if ci in done:  # a repeat padding the last group
+                    continue
+                done.add(ci)
+                cols = col_index[ci]
+                fired = np.asarray(fired)
+                step, pix = np.nonzero(fired)
+                col_local, row = np.divmod(pix, h)
+                keep = col_local < w - ci * chunk_columns  # drop padded columns
+                step, pix = step[keep], pix[keep]
+                col_local, row = col_local[keep], row[keep]
+                out_cols["x"].append(cols[col_local].astype(np.uint16))
+                out_cols["y"].append(row.astype(np.uint16))
+                out_cols["p"].append(np.asarray(up)[step, pix].astype(np.uint8))
+                # Index first, then widen: converting the whole (t, pixels) array to
+                # float64 cost ~90 MB of copying per full-height chunk.
+                t_abs = s_idx * period + np.asarray(tc)[step, pix].astype(np.float64)
+                out_cols["t"].append(np.floor(t_abs).astype(np.int64))
+                bar.update(1)
     bar.close()
 
     n_noise = 0

@@ -140,6 +140,8 @@ def cmd_info(args):
 
 
 def cmd_reconstruct(args):
+    if args.per_sweep:
+        return _reconstruct_per_sweep(args)
     from ._cubefile import save_cube
     from ._io import read_events
     from ._reconstruct import reconstruct
@@ -162,6 +164,7 @@ def cmd_reconstruct(args):
         t_start_us=args.t_start_us,
         progress=not args.quiet,
         return_info=True,
+        mesh=_mesh(args.devices),
     )
     elapsed = time.perf_counter() - t0
     save_cube(out, cube, rig.wavelengths_nm, events_per_pixel=info.events, kkt=info.kkt)
@@ -175,6 +178,56 @@ def cmd_reconstruct(args):
         f"({n / elapsed:,.0f} px/s) -> {out}"
         + (f"; preview -> {preview}" if preview else "")
     )
+    return 0
+
+
+def _mesh(devices):
+    if devices in (None, 1):
+        return None
+    from ._shard import pixel_mesh
+
+    return pixel_mesh(None if devices == 0 else devices)
+
+
+def _reconstruct_per_sweep(args):
+    from ._io import EventReader
+    from ._stream import reconstruct_sweeps
+
+    out = Path(args.out)
+    if out.suffix:
+        raise ValueError(f"with --per-sweep, --out is a folder, got {args.out!r}")
+    if args.preview:
+        raise ValueError("with --per-sweep the preview is DIR/preview.gif")
+    if args.t_start_us is not None:
+        raise ValueError("--t-start-us does not apply to --per-sweep")
+    rig = _load_rig(args.calib)
+    reader = EventReader(args.events)  # geometry only; the events are streamed
+    thr_on, thr_off = rig.load_threshold_maps(reader.height, reader.width)
+    res = reconstruct_sweeps(
+        args.events,
+        rig,
+        out,
+        solver=args.solver,
+        threshold_on_map=thr_on,
+        threshold_off_map=thr_off,
+        max_sweeps=args.max_sweeps,
+        low_event_rel=args.low_events,
+        mesh=_mesh(args.devices),
+        overwrite=args.restart,
+        progress=not args.quiet,
+    )
+    n = reader.height * reader.width
+    rate = res.reconstructed / res.solve_seconds if res.solve_seconds else 0.0
+    low = res.low_event_sweeps
+    from ._shard import is_main_process
+
+    if is_main_process():
+        print(
+            f"{res.sweeps} sweep(s) of {reader.height}x{reader.width}x{rig.channels} in "
+            f"{out}: {res.reconstructed} reconstructed in {res.seconds:.1f} s "
+            f"({rate:.2f} sweeps/s, {rate * n:,.0f} px/s), {res.skipped} already done"
+            + (f"; {len(low)} flagged low-events: {low[:10]}" if low else "")
+        )
     return 0
 
 
@@ -214,7 +267,10 @@ def cmd_convert(args):
 
     report = convert_events(args.src, args.dst)
     skipped = {k: report[k] for k in DecodeReport.DEFECTS if report.get(k)}
-    print(f"wrote {args.dst}" + (f" (skipped while decoding: {skipped})" if skipped else ""))
+    print(
+        f"wrote {args.dst}"
+        + (f" (skipped while decoding: {skipped})" if skipped else "")
+    )
     return 0
 
 
@@ -242,7 +298,9 @@ def cmd_calibrate(args):
     )
     rig = res.rig
     cfg = save_calibration(
-        out, res, comment=f"evhsi calibrate {Path(args.events).name} --chart {args.chart}"
+        out,
+        res,
+        comment=f"evhsi calibrate {Path(args.events).name} --chart {args.chart}",
     )
     print(f"{'parameter':18s} {'initial':>12s} {'fitted':>12s}")
     for k in ("threshold_on", "threshold_off", "beta_nm_per_rad", "baseline_rel"):
@@ -282,6 +340,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     top.add_argument(
         "--float64", action="store_true", help="compute in float64 (default float32)"
+    )
+    top.add_argument(
+        "--distributed",
+        action="store_true",
+        help="join a multi-host run (jax.distributed; EVHSI_COORDINATOR=host:port, "
+        "EVHSI_NUM_PROCESSES, EVHSI_PROCESS_ID, or SLURM/MPI auto-detection)",
     )
     sub = top.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True
@@ -371,8 +435,41 @@ def build_parser() -> argparse.ArgumentParser:
         required=True,
         help="calibration / rig JSON (keys left out take default values)",
     )
-    p.add_argument("--out", required=True, metavar="CUBE.npz")
+    p.add_argument(
+        "--out",
+        required=True,
+        metavar="CUBE.npz|DIR",
+        help="cube file; with --per-sweep a folder (created) of per-sweep cube files",
+    )
     p.add_argument("--preview", metavar="PNG", help="also write an sRGB preview")
+    p.add_argument(
+        "--per-sweep",
+        action="store_true",
+        help="one cube per sweep (video): stream the file with bounded memory into "
+        "DIR/sweep_NNNNNN.npz + DIR/index.json + DIR/preview.gif; rerunning resumes",
+    )
+    p.add_argument(
+        "--max-sweeps", type=int, default=None, help="per-sweep: stop after N sweeps"
+    )
+    p.add_argument(
+        "--low-events",
+        type=float,
+        default=0.5,
+        metavar="REL",
+        help="per-sweep: flag sweeps with fewer events than REL x the median (0.5)",
+    )
+    p.add_argument(
+        "--restart",
+        action="store_true",
+        help="per-sweep: discard what DIR holds instead of resuming",
+    )
+    p.add_argument(
+        "--devices",
+        type=int,
+        default=1,
+        metavar="N",
+        help="shard pixels over N devices (0: all, every host's); default 1",
+    )
     p.add_argument(
         "--solver",
         default="auto",
@@ -475,6 +572,10 @@ def main(argv=None) -> int:
 
         jax.config.update("jax_enable_x64", True)
     try:
+        if args.distributed:
+            from ._shard import initialize_distributed
+
+            initialize_distributed()
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         print("evhsi: interrupted", file=sys.stderr)

@@ -9,6 +9,7 @@ bounded by the chunk.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import equinox as eqx
@@ -112,12 +113,11 @@ def _solve_chunk(
     phase,
     sweeps: int,
 ):
-    """Assemble and solve a chunk of pixels; returns x (n, M) and KKT residuals."""
+    """Assemble and solve a chunk of pixels; returns x (n, M) and KKT residuals.
+    `phase` is a scalar or one value per pixel."""
 
-    def system(t, p, mk, off, con, coff):
-        return pixel_system(rig, table, cfg, t, p, mk, off, con, coff, phase, sweeps)[
-            :2
-        ]
+    def system(t, p, mk, off, con, coff, ph):
+        return pixel_system(rig, table, cfg, t, p, mk, off, con, coff, ph, sweeps)[:2]
 
     def one_batch(args):
         q_mat, q_vec = jax.vmap(system)(*args)
@@ -127,16 +127,17 @@ def _solve_chunk(
             )
             return x, kkt
         if spec.name == "svd":
-            gram = jax.vmap(
-                lambda *a: _augmented_gram(rig, table, cfg, *a, phase, sweeps)
-            )(*args)
+            gram = jax.vmap(lambda *a: _augmented_gram(rig, table, cfg, *a, sweeps))(
+                *args
+            )
             x = jax.vmap(_solvers.svd_nullvector)(gram)
         else:
             x = jax.vmap(lambda a, b: spec.solve(a, b, None))(q_mat, q_vec)
         return x, jax.vmap(_solvers.kkt_residual)(q_mat, q_vec, x)
 
     n = t_us.shape[0]
-    xs = (t_us, polarity, mask, offsets, thr_on, thr_off)
+    phase = jnp.broadcast_to(jnp.asarray(phase, t_us.dtype), (n,))
+    xs = (t_us, polarity, mask, offsets, thr_on, thr_off, phase)
     xs = jax.tree.map(lambda a: a.reshape((n // sub, sub) + a.shape[1:]), xs)
     x, kkt = jax.lax.map(one_batch, xs)
     return x.reshape(n, -1), kkt.reshape(n)
@@ -160,10 +161,12 @@ def reconstruct(
     threshold_on_map: np.ndarray | None = None,
     threshold_off_map: np.ndarray | None = None,
     t_start_us: int | None = None,
+    reference_us: np.ndarray | None = None,
     chunk_pixels: int = 2048,
     sub_batch: int = 128,
     progress: bool = False,
     return_info: bool = False,
+    mesh=None,
 ):
     """Reconstruct a reflectance cube from an event recording of a static scene.
 
@@ -177,10 +180,22 @@ def reconstruct(
       (log units) from a calibration; default the rig's global values.
     - `t_start_us`: time at which the recording's first sweep starts (sweep phase 0);
       default the first trigger, else 0.
+    - `reference_us`: optional `(H, W)` times (µs, same clock as the events; NaN for
+      none) at which each pixel's reference level was last set before `t_start_us` —
+      the release $τ + η$ after its last earlier event. The pixel's first event then
+      refers to the intensity at that time (under the spectrum being solved for)
+      instead of the baseline c' at `t_start_us`: what a recording cut out of a longer
+      one needs (:func:`evhsi_jax.reconstruct_sweeps`). Default: all at `t_start_us`.
     - `chunk_pixels`: pixels per compiled chunk (memory ∝ chunk × events per pixel).
     - `sub_batch`: pixels per `lax.map` step inside a chunk.
     - `progress`: show a progress bar.
     - `return_info`: also return a :class:`ReconstructionInfo`.
+    - `mesh`: a `jax.sharding.Mesh` with a `"pixels"` axis
+      (:func:`evhsi_jax.pixel_mesh`): each chunk's pixels are split over its devices,
+      `chunk_pixels` per device. Device `d` solves the same sub-batches as a
+      single-device run with `chunk_pixels × devices` does, so the cubes are equal
+      (results depend on sub-batch membership in the last bits). Several CPU devices
+      solve one pixel per sub-batch (see `evhsi_jax._shard.sub_batch_for`).
 
     **Returns:** the cube `(H, W, M)` float32 (and the info if asked).
     """
@@ -200,10 +215,17 @@ def reconstruct(
     duration = float(events.t_us[-1] - t_start_us) if len(events) else 0.0
     sweeps = max(1, math.ceil((duration + 1.0) / period))
     sub = max(1, min(sub_batch, chunk_pixels))
+    solve, n_dev = _solve_chunk, 1
+    if mesh is not None:
+        from .._shard import solve_chunk_sharded, sub_batch_for
+
+        solve, n_dev = functools.partial(solve_chunk_sharded, mesh), mesh.devices.size
+        sub = sub_batch_for(mesh, sub)
     chunk = sub * math.ceil(chunk_pixels / sub)
     batches, counts, _ = group_pixels(
-        events, t_start_us=t_start_us, chunk_pixels=chunk, min_chunk=sub
+        events, t_start_us=t_start_us, chunk_pixels=chunk * n_dev, min_chunk=sub * n_dev
     )
+    lead = _reference_lead_us(reference_us, t_start_us, period, h, w)
     dtype = rig.fwhm_nm.dtype  # float32 or float64: the rig decides
     table = band_table(rig).channels(rig.grid.sub)
     thr_on = (
@@ -219,7 +241,6 @@ def reconstruct(
 
     cube = np.full((h * w, m), _no_event_answer(rig, m), np.float32)
     kkt_all = np.full(h * w, np.nan, np.float32)
-    phase = jnp.asarray(0.0, dtype)
     bar = tqdm(
         total=int(np.count_nonzero(counts)),
         disable=not progress,
@@ -229,19 +250,21 @@ def reconstruct(
     for b in batches:
         valid = b.pixel >= 0
         pix = np.where(valid, b.pixel, 0)
-        x, kkt = _solve_chunk(
+        # Carried references: shift each pixel's clock to start at its reference.
+        d = np.where(valid, lead[pix], 0.0)
+        x, kkt = solve(
             rig,
             table,
             cfg,
             spec,
             sub,
-            jnp.asarray(b.t_us, dtype),
+            jnp.asarray(np.where(b.mask, b.t_us + d[:, None], 0.0), dtype),
             jnp.asarray(b.polarity, jnp.int32),
             jnp.asarray(b.mask),
             jnp.asarray(offsets_all[b.column], dtype),
             jnp.asarray(thr_on[pix], dtype),
             jnp.asarray(thr_off[pix], dtype),
-            phase,
+            jnp.asarray(-d, dtype),
             sweeps,
         )
         x = np.asarray(x)
@@ -266,6 +289,20 @@ def reconstruct(
         sweeps=sweeps,
     )
     return cube, info
+
+
+def _reference_lead_us(reference_us, t_start_us, period, h, w) -> np.ndarray:
+    """Per pixel, how long before `t_start_us` its reference was set, reduced modulo
+    the period into [0, P) (only its place in the sweep matters: the pixel did not
+    fire in between). Shifting the pixel's times by it and passing minus it as the
+    phase puts its first reference at the reference time, the rest unchanged."""
+    if reference_us is None:
+        return np.zeros(h * w)
+    ref = np.asarray(reference_us, np.float64)
+    if ref.shape != (h, w):
+        raise ValueError(f"reference_us has shape {ref.shape}, expected {(h, w)}")
+    lead = np.nan_to_num(float(t_start_us) - ref.reshape(-1), nan=0.0)
+    return np.mod(np.maximum(lead, 0.0), period)
 
 
 def _check_map(a, h, w, name):

@@ -1,0 +1,314 @@
+"""Scale-out: the pixel axis across devices (`jax.sharding`) and hosts (`jax.distributed`).
+
+Both heavy loops are embarrassingly parallel over pixels: the reconstruction solves one
+QP per pixel, the simulator scans each column chunk independently. A one-axis
+:class:`jax.sharding.Mesh` named `"pixels"` spans the devices; each compiled chunk is
+cut into equal per-device blocks with :func:`jax.shard_map`, and every device runs the
+*same* per-pixel kernel on its block as the single-device code does on a whole chunk —
+no communication, and results equal the unsharded run (each pixel's arithmetic does not
+depend on which pixels share its batch).
+
+The same code runs on one CPU, on many CPU devices
+(`XLA_FLAGS=--xla_force_host_platform_device_count=N`, set before jax is imported), on
+GPUs, and across hosts.
+
+**Multi-host.** Every process runs the same program on the same inputs (each reads the
+event file from shared storage and does the cheap host-side grouping itself); the mesh
+spans all processes' devices, each process feeds only its own devices' blocks
+(`jax.make_array_from_callback`), results are gathered back to every process
+(`multihost_utils.process_allgather`), and only process 0 writes files. Start it with
+:func:`initialize_distributed` (or `evhsi --distributed ...`) in every process, e.g.
+two hosts::
+
+    # host A                                   # host B
+    EVHSI_COORDINATOR=hostA:1234 \\             EVHSI_COORDINATOR=hostA:1234 \\
+    EVHSI_NUM_PROCESSES=2 EVHSI_PROCESS_ID=0 \\  EVHSI_NUM_PROCESSES=2 EVHSI_PROCESS_ID=1 \\
+    evhsi --distributed reconstruct ...         evhsi --distributed reconstruct ...
+
+On SLURM / Open MPI / TPU pods `jax.distributed.initialize()` finds these by itself, so
+`--distributed` with no variables set is enough there.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import os
+
+import equinox as eqx
+import jax
+import numpy as np
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
+
+__all__ = [
+    "PIXELS",
+    "pixel_mesh",
+    "initialize_distributed",
+    "is_main_process",
+    "to_global",
+    "to_host",
+    "solve_chunk_sharded",
+    "scan_chunks_sharded",
+    "sub_batch_for",
+]
+
+PIXELS = "pixels"
+_ENV = {
+    "coordinator_address": "EVHSI_COORDINATOR",
+    "num_processes": "EVHSI_NUM_PROCESSES",
+    "process_id": "EVHSI_PROCESS_ID",
+}
+
+
+def initialize_distributed(
+    coordinator_address: str | None = None,
+    num_processes: int | None = None,
+    process_id: int | None = None,
+) -> bool:
+    """Join a multi-host run (`jax.distributed.initialize`), once per process.
+
+    Arguments left `None` are read from `EVHSI_COORDINATOR` (`host:port` of process
+    0), `EVHSI_NUM_PROCESSES` and `EVHSI_PROCESS_ID`; if those are unset too, JAX's own
+    cluster detection (SLURM, Open MPI, TPU) fills them in. Must run before any other
+    JAX call. Returns True once initialised (also if it already was).
+    """
+    if jax.distributed.is_initialized():
+        return True
+    kw = {"coordinator_address": coordinator_address}
+    kw["num_processes"], kw["process_id"] = num_processes, process_id
+    for name, var in _ENV.items():
+        if kw[name] is None and os.environ.get(var):
+            raw = os.environ[var]
+            try:
+                kw[name] = raw if name == "coordinator_address" else int(raw)
+            except ValueError:
+                raise ValueError(f"{var} must be an integer, got {raw!r}") from None
+    jax.distributed.initialize(**{k: v for k, v in kw.items() if v is not None})
+    return True
+
+
+def is_main_process() -> bool:
+    """True in process 0 (the one that writes files), and in any single-process run."""
+    return jax.process_index() == 0
+
+
+def pixel_mesh(devices=None) -> Mesh:
+    """A one-axis mesh `("pixels",)` over `devices` (default: all, every host's).
+
+    **Arguments:**
+
+    - `devices`: a sequence of devices, or an int `n` for the first `n` of
+      `jax.devices()`.
+    """
+    if devices is None:
+        devices = jax.devices()
+    elif isinstance(devices, int):
+        if not 1 <= devices <= len(jax.devices()):
+            raise ValueError(
+                f"asked for {devices} devices, have {len(jax.devices())} "
+                "(CPU: set XLA_FLAGS=--xla_force_host_platform_device_count=N "
+                "before jax is imported)"
+            )
+        devices = jax.devices()[:devices]
+    return Mesh(np.asarray(list(devices)), (PIXELS,))
+
+
+def _n(mesh: Mesh | None) -> int:
+    return 1 if mesh is None else int(mesh.devices.size)
+
+
+def to_global(mesh: Mesh, array, *, sharded: bool = True) -> jax.Array:
+    """A host array (the same on every process) as a global array on `mesh`, its
+    leading axis split over `"pixels"` (or replicated with `sharded=False`)."""
+    array = np.asarray(array)
+    sharding = NamedSharding(mesh, P(PIXELS) if sharded else P())
+    if jax.process_count() == 1:
+        return jax.device_put(array, sharding)
+    return jax.make_array_from_callback(array.shape, sharding, lambda idx: array[idx])
+
+
+def to_host(x) -> np.ndarray:
+    """A (possibly multi-host) global array as one NumPy array on every process."""
+    if jax.process_count() == 1 or x.is_fully_addressable:
+        return np.asarray(x)
+    from jax.experimental import multihost_utils
+
+    return np.asarray(multihost_utils.process_allgather(x, tiled=True))
+
+
+def _replicated(mesh, tree):
+    """Array leaves of a parameter pytree (rig, tables) replicated on every device."""
+    if jax.process_count() == 1:
+        return tree
+    return jax.tree.map(
+        lambda a: to_global(mesh, a, sharded=False) if eqx.is_array(a) else a, tree
+    )
+
+
+# --- reconstruction ------------------------------------------------------------------
+@functools.lru_cache(maxsize=64)
+def _solver_fn(mesh, cfg, spec, sub, sweeps):
+    from ._reconstruct._pipeline import _solve_chunk
+
+    def local(rig, table, *rows):
+        return _solve_chunk(rig, table, cfg, spec, sub, *rows[:-1], rows[-1], sweeps)
+
+    mapped = jax.shard_map(
+        local,
+        mesh=mesh,
+        in_specs=(P(), P()) + (P(PIXELS),) * 7,
+        out_specs=(P(PIXELS), P(PIXELS)),
+        check_vma=False,
+    )
+    return eqx.filter_jit(mapped)
+
+
+def sub_batch_for(mesh: Mesh, sub: int) -> int:
+    """The sub-batch a sharded solve can use on `mesh`: 1 on several CPU devices.
+
+    XLA:CPU runs every CPU device's program on one shared thread pool, and its
+    batched Cholesky (LAPACK FFI) splits the batch over that pool and blocks until
+    the pieces are done; when every pool thread is a device program blocked that way,
+    nothing runs the pieces (seen with 4 forced host devices on 2 cores: a hang, all
+    threads in `ParallelBatchMap`). Single-matrix Cholesky calls do not split, so on
+    several CPU devices each `lax.map` step solves one pixel. GPUs keep `sub`.
+    """
+    devices = list(mesh.devices.flat)
+    if len(devices) > 1 and all(d.platform == "cpu" for d in devices):
+        return 1
+    return int(sub)
+
+
+def solve_chunk_sharded(
+    mesh: Mesh,
+    rig,
+    table,
+    cfg,
+    spec,
+    sub: int,
+    t_us,
+    polarity,
+    mask,
+    offsets,
+    thr_on,
+    thr_off,
+    phase,
+    sweeps: int,
+):
+    """The reconstruction's chunk kernel with its pixels split over `mesh`.
+
+    Same arguments and results as `_reconstruct._pipeline._solve_chunk` (host arrays
+    in, NumPy `(x, kkt)` out); the chunk's pixel count must be a multiple of
+    `mesh.size * sub`.
+    """
+    n = np.shape(t_us)[0]
+    if n % (_n(mesh) * sub):
+        raise ValueError(f"chunk of {n} pixels does not split into {_n(mesh)}×{sub}")
+    rows = [
+        to_global(mesh, np.asarray(a))
+        for a in (t_us, polarity, mask, offsets, thr_on, thr_off, phase)
+    ]
+    fn = _solver_fn(mesh, cfg, spec, int(sub), int(sweeps))
+    x, kkt = fn(_replicated(mesh, rig), _replicated(mesh, table), *rows)
+    return to_host(x), to_host(kkt)
+
+
+def chunk_groups(n_chunks: int, mesh: Mesh | None) -> list[list[int]]:
+    """Chunk indices in groups of `mesh.size` (the last padded by repeating its final
+    index; the caller discards repeats)."""
+    d = _n(mesh)
+    groups = []
+    for g0 in range(0, n_chunks, d):
+        g = list(range(g0, min(g0 + d, n_chunks)))
+        groups.append(g + [g[-1]] * (d - len(g)))
+    return groups
+
+
+# --- simulation ----------------------------------------------------------------------
+@functools.lru_cache(maxsize=64)
+def _log_intensity_fn(mesh, palette: bool, lo_nm: float):
+    from ._simulate import _log_intensity
+
+    def local(rig, tab, spectra, t_local, offsets, labels):
+        spec = spectra if palette else spectra[0]
+        log_i = _log_intensity(rig, tab, lo_nm, t_local[0], offsets[0], spec, labels[0])
+        return log_i[None]
+
+    rows = P(PIXELS)
+    mapped = jax.shard_map(
+        local,
+        mesh=mesh,
+        in_specs=(P(), P(), P() if palette else rows, rows, rows, rows),
+        out_specs=rows,
+        check_vma=False,
+    )
+    return eqx.filter_jit(mapped)
+
+
+@functools.lru_cache(maxsize=64)
+def _scan_fn(mesh, fresh: bool):
+    from ._simulate import _scan
+
+    def local(rig, log_i, t_local, thr_on, thr_off, state):
+        state = None if fresh else jax.tree.map(lambda a: a[0], state)
+        out, state = _scan(rig, log_i[0], t_local[0], thr_on[0], thr_off[0], state)
+        return jax.tree.map(lambda a: a[None], (*out, state))
+
+    rows = P(PIXELS)
+    mapped = jax.shard_map(
+        local,
+        mesh=mesh,
+        in_specs=(P(),) + (rows,) * 5,
+        out_specs=rows,
+        check_vma=False,
+    )
+    return eqx.filter_jit(mapped)
+
+
+def scan_chunks_sharded(
+    mesh: Mesh,
+    rig,
+    table_values,
+    lo_nm: float,
+    spectra,
+    t_local,
+    offsets,
+    labels,
+    thr_on,
+    thr_off,
+    state,
+):
+    """The simulator's chunk kernel on one group of `mesh.size` column chunks at once.
+
+    Every argument after `spectra` has a leading axis of one entry per chunk
+    (`spectra` too when it holds per-pixel spectra, `(D, c, h, f)`; a palette `(K, f)`
+    is shared); `state` is `None` on the first sweep, else the stacked state the
+    previous call returned. Two compiled stages (intensity, then the scan), as in the
+    single-device palette path. Returns `(fired, time_us, is_on, state)`, stacked
+    `(D, …)`: NumPy, the state as device arrays.
+    """
+    palette = np.ndim(spectra) == 2
+    fresh = state is None
+    g = functools.partial(to_global, mesh)
+    rig_r = _replicated(mesh, rig)
+    log_i = _log_intensity_fn(mesh, palette, float(lo_nm))(
+        rig_r,
+        _replicated(mesh, table_values),
+        to_global(mesh, spectra, sharded=False) if palette else g(spectra),
+        g(t_local),
+        g(offsets),
+        g(labels),
+    )
+    if fresh:  # a placeholder with the right leading axis; not read
+        state = (g(np.zeros((_n(mesh), 1), np.float32)),) * 3
+    fired, tc, up, new_state = _scan_fn(mesh, fresh)(
+        rig_r, log_i, g(t_local), g(thr_on), g(thr_off), state
+    )
+    return to_host(fired), to_host(tc), to_host(up), new_state
+
+
+def pad_to_devices(n: int, mesh: Mesh | None, multiple: int = 1) -> int:
+    """`n` rounded up to a multiple of `mesh.size * multiple`."""
+    q = _n(mesh) * multiple
+    return q * math.ceil(n / q)

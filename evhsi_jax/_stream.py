@@ -1,0 +1,659 @@
+"""Streaming reconstruction: a long recording → one cube per sweep, resumable.
+
+**Dataset format** (a folder; no dependency beyond NumPy, each file readable alone):
+
+- `sweep_000000.npz`, `sweep_000001.npz`, …: one *cube file* per sweep (the contract
+  format: `cube` (H, W, M) float32 reflectance and `wavelengths_nm` (M,), so `evhsi
+  evaluate` / `evhsi render` / :func:`evhsi_jax.load_cube` work on it), plus `srgb`
+  (H, W, 3) uint8 preview, `events_per_pixel` (H, W), `kkt` (H, W), and the scalars
+  `sweep`, `start_us`, `stop_us`, `events`. Each file describes itself.
+- `index.json`: the run's settings and one entry per finished sweep (file, start/stop
+  µs, event count, flags); :func:`load_sweep_index`, :func:`iter_sweep_cubes`.
+- `preview.gif`: the sRGB sequence (written when the run completes).
+
+**Bounded memory.** The event file is read chunk by chunk (`iter_events`); only the
+sweep being assembled, one decoded chunk and an `(H, W)` per-pixel state are held, so
+memory does not grow with the recording (`.npz` event files are the exception: NumPy
+loads them whole — convert long recordings to `.raw`).
+
+**Resumable.** Every sweep file is written atomically (temporary file + rename) before
+the index mentions it, and the index is rewritten atomically (at most once a second,
+and when the run stops for any reason). A crash or Ctrl-C loses at most the sweep in
+flight; a rerun with the same inputs and settings skips every sweep whose file exists
+(files the index had not caught up with are adopted from their own metadata), and no
+file is ever left half-written. A rerun with other inputs or settings into the same
+folder is refused (`overwrite=True` starts afresh).
+
+**Per-sweep reference.** The first event of a pixel in sweep k refers to the pixel's
+reference level, set at the release $τ + η$ after its *last event before the sweep*
+(usually the final OFF event as the band left it in sweep k − 1). That level is
+$a(τ+η)\\cdot x + c'$: the band's tail on the pixel then, which is up to one threshold
+above the baseline c'. The per-sweep solve carries that time per pixel (an `(H, W)`
+array updated from every event, skipped sweeps included) and models the level with the
+spectrum being solved for — exact for a static scene, and for a moving one off only
+where the pixel's material changed between the two sweeps (a level within one threshold
+of the baseline either way). Taking the baseline at the sweep start instead is wrong
+by up to one threshold on that first constraint, which on the ColorChecker raised the
+per-sweep SAM several-fold (experiments/VIDEO.md); pixels that never fired before use
+the baseline, which is exact at the recording start.
+
+**Flags.** A sweep with fewer than `low_event_rel` × the median events per sweep (no
+light, occlusion, a dropped stretch of data) is marked `low_events` in the index (the
+median over the sweeps done so far while running, over all at the end); a sweep longer
+than 1.5 median trigger intervals (a missed trigger) is marked `irregular`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import io
+import json
+import math
+import os
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from ._cubefile import load_cube, save_cube
+from ._events import EventStream, atomic_write
+from ._io import iter_events
+from ._io._reader import DEFAULT_CHUNK_BYTES
+from ._reconstruct import ProblemConfig, reconstruct, solver_spec
+from ._reconstruct._pixels import TIMESTAMP_CENTRE_US
+from ._render import cube_to_srgb
+from ._rig import Rig
+
+__all__ = [
+    "StreamResult",
+    "reconstruct_sweeps",
+    "load_sweep_index",
+    "iter_sweep_cubes",
+    "sweep_file_name",
+    "write_preview_gif",
+    "INDEX_NAME",
+    "PREVIEW_NAME",
+]
+
+INDEX_NAME = "index.json"
+PREVIEW_NAME = "preview.gif"
+FORMAT = "evhsi-sweep-cubes"
+VERSION = 1
+
+
+def sweep_file_name(k: int) -> str:
+    """The file of sweep `k` inside the dataset folder."""
+    return f"sweep_{int(k):06d}.npz"
+
+
+@dataclasses.dataclass(frozen=True)
+class StreamResult:
+    """What a :func:`reconstruct_sweeps` run did.
+
+    - `out_dir`: the dataset folder; `index`: the final index (as in `index.json`).
+    - `sweeps`: sweeps in the recording (or up to `max_sweeps`).
+    - `reconstructed`, `skipped`: solved in this run / found finished already.
+    - `low_event_sweeps`: indices flagged `low_events`.
+    - `seconds`: wall time of this run; `solve_seconds`: of its solves alone.
+    """
+
+    out_dir: Path
+    index: dict
+    sweeps: int
+    reconstructed: int
+    skipped: int
+    low_event_sweeps: list
+    seconds: float
+    solve_seconds: float
+
+
+# --- sweep assembly -----------------------------------------------------------------
+class _SweepCutter:
+    """Cuts a chunked, time-ordered event stream into sweeps with bounded memory.
+
+    Sweep starts come from encoder triggers (id `trigger_id`, rising edge; see
+    `split_sweeps`) or, without any in the first few periods, at `phase_us + j
+    period_us` (the band's own sweep starts, as `reconstruct`'s `t_start_us`: the
+    reconstruction needs each sweep's time origin, not just a cut in the dead time).
+    Yields `(k, start, stop, events, before)`:
+    `events` holds the sweep's events, `before` the events that precede the first
+    sweep (they set pixel references, nothing else).
+    """
+
+    def __init__(self, chunks, period_us, triggers, phase_us, trigger_id=0):
+        self.chunks = iter(chunks)
+        self.period = float(period_us)
+        self.mode = triggers
+        self.phase = phase_us
+        self.trigger_id = trigger_id
+        self.pending: list[EventStream] = []
+        self.marks: list[int] = []
+        self.t_max = -(2**62)
+        self.exhausted = False
+        self.geometry = None
+
+    def _pull(self) -> bool:
+        try:
+            c = next(self.chunks)
+        except StopIteration:
+            self.exhausted = True
+            return False
+        self.geometry = (c.width, c.height)
+        sel = (c.trigger_id == self.trigger_id) & (c.trigger_p == 1)
+        for m in c.trigger_t_us[sel].tolist():
+            if not self.marks or m > self.marks[-1]:
+                self.marks.append(int(m))
+        if len(c):
+            self.pending.append(c)
+            self.t_max = max(self.t_max, int(c.t_us[-1]))
+        return True
+
+    def _take(self, t0: int, t1: int) -> EventStream:
+        """Events in `[t0, t1)`; everything before `t1` leaves the buffer."""
+        w, h = self.geometry
+        if not self.pending:
+            return EventStream(*(np.zeros(0, np.int64),) * 4, w, h)
+        cat = EventStream.concatenate(self.pending) if len(self.pending) > 1 else None
+        cat = cat or self.pending[0]
+        out = cat.time_window(t0, t1)
+        rest = cat.time_window(t1, 2**62)
+        self.pending = [rest] if len(rest) else []
+        return out
+
+    def _decide(self):
+        """Trigger or period mode, from the first ~4 periods of data."""
+        while not self.exhausted and (
+            not self.pending
+            or self.t_max - int(self.pending[0].t_us[0]) < 4 * self.period
+        ):
+            self._pull()
+        use_trig = self.mode != "ignore" and len(self.marks) >= 1
+        if self.mode == "require" and not use_trig:
+            raise ValueError(
+                f"no sweep triggers (id {self.trigger_id}, rising edge) in the first "
+                "periods of the recording"
+            )
+        self.mode = "trigger" if use_trig else "period"
+        if self.mode == "period" and self.phase is None:
+            self.phase = 0.0
+
+    def __iter__(self):
+        self._decide()
+        if self.geometry is None:
+            return
+        if self.mode == "trigger":
+            yield from self._by_trigger()
+        else:
+            yield from self._by_period()
+
+    def _by_trigger(self):
+        first = self.marks[0]
+        before = self._take(-(2**62), first)
+        k = 0
+        while True:
+            while len(self.marks) < k + 2 and not self.exhausted:
+                self._pull()
+            if len(self.marks) >= k + 2:
+                start, stop = self.marks[k], self.marks[k + 1]
+                while self.t_max < stop and not self.exhausted:
+                    self._pull()
+            else:  # the last sweep: one median interval (or period) long
+                start = self.marks[k]
+                gaps = np.diff(self.marks)
+                stop = start + int(round(np.median(gaps) if gaps.size else self.period))
+                while not self.exhausted:
+                    self._pull()
+            yield k, start, stop, self._take(start, stop), before
+            before = None
+            k += 1
+            if len(self.marks) < k + 1:
+                return
+
+    def _by_period(self):
+        if not self.pending:
+            return
+        t0 = int(self.pending[0].t_us[0])
+        j0 = math.floor((t0 - self.phase) / self.period)
+        cut = lambda j: int(round(self.phase + j * self.period))  # noqa: E731
+        if cut(j0) > t0:
+            j0 -= 1
+        k = 0
+        while True:
+            start, stop = cut(j0 + k), cut(j0 + k + 1)
+            while self.t_max < stop and not self.exhausted:
+                self._pull()
+            if not self.pending and self.exhausted:
+                return
+            yield k, start, stop, self._take(start, stop), None
+            k += 1
+
+
+# --- index --------------------------------------------------------------------------
+def _fingerprint(settings: dict) -> str:
+    blob = json.dumps(settings, sort_keys=True, default=str).encode()
+    return hashlib.sha256(blob).hexdigest()[:16]
+
+
+def _digest(a) -> str | None:
+    if a is None:
+        return None
+    return hashlib.sha256(np.ascontiguousarray(a, np.float64).tobytes()).hexdigest()[
+        :16
+    ]
+
+
+def _write_json(path: Path, obj) -> None:
+    data = json.dumps(obj, indent=1).encode()
+    atomic_write(path, lambda f: f.write(data))
+
+
+def load_sweep_index(out_dir: str | os.PathLike) -> dict:
+    """Read a per-sweep dataset's `index.json` (a clear `ValueError` if it is not one).
+
+    **Returns:** the index: `height`, `width`, `wavelengths_nm`, `period_us`,
+    `boundaries` (`"trigger"` / `"period"`), `median_events`, `complete`, and
+    `sweeps`, a list of entries `{sweep, file, start_us, stop_us, events, events_rel,
+    low_events, irregular, pixels_solved, seconds}` in sweep order.
+    """
+    path = Path(out_dir) / INDEX_NAME
+    if not path.is_file():
+        raise ValueError(f"{out_dir} holds no {INDEX_NAME}: not a per-sweep dataset")
+    try:
+        index = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        raise ValueError(f"{path} is not readable JSON ({err})") from None
+    if index.get("format") != FORMAT:
+        raise ValueError(f"{path} is not an {FORMAT} index")
+    return index
+
+
+def iter_sweep_cubes(out_dir: str | os.PathLike) -> Iterator[tuple[dict, dict]]:
+    """`(entry, cube_file)` per finished sweep, in order, one file in memory at a time
+    (`cube_file` as :func:`evhsi_jax.load_cube` returns it)."""
+    index = load_sweep_index(out_dir)
+    for entry in index["sweeps"]:
+        yield entry, load_cube(Path(out_dir) / entry["file"])
+
+
+def _entry_from_file(path: Path) -> dict | None:
+    """An index entry rebuilt from a sweep file's own metadata (None if unusable)."""
+    try:
+        with np.load(path, allow_pickle=False) as d:
+            meta = {k: int(d[k]) for k in ("sweep", "start_us", "stop_us", "events")}
+            meta["pixels_solved"] = int(np.count_nonzero(d["events_per_pixel"]))
+    except Exception:  # a foreign or damaged file: redo that sweep
+        return None
+    return {"file": path.name, **meta, "seconds": None}
+
+
+def _flag(entries: list[dict], rel: float, period: float) -> float:
+    """Set `events_rel`, `low_events`, `irregular` on every entry; return the median."""
+    if not entries:
+        return 0.0
+    counts = np.array([e["events"] for e in entries], np.float64)
+    med = float(np.median(counts))
+    lengths = np.array([e["stop_us"] - e["start_us"] for e in entries], np.float64)
+    typical = float(np.median(lengths)) if lengths.size else period
+    for e, c, n in zip(entries, counts, lengths):
+        e["events_rel"] = round(c / med, 4) if med > 0 else 0.0
+        e["low_events"] = bool(c < rel * med or c == 0)
+        e["irregular"] = bool(n > 1.5 * typical)
+    return med
+
+
+def _finished_sweeps(out_dir: Path, fp: str, *, overwrite: bool) -> dict[int, dict]:
+    """Sweeps a previous run of the same inputs and settings finished in `out_dir`.
+
+    The index is written before any sweep file, so sweep files without an index are
+    foreign: refused, like an index of other settings. Files newer than the index (it
+    is rewritten at most once a second) are adopted from their own metadata.
+    """
+    files = sorted(out_dir.glob("sweep_*.npz")) if out_dir.is_dir() else []
+    index_path = out_dir / INDEX_NAME
+    if overwrite:
+        for f in [*files, index_path, out_dir / PREVIEW_NAME]:
+            f.unlink(missing_ok=True)
+        return {}
+    if not index_path.is_file():
+        if files:
+            raise ValueError(
+                f"{out_dir} holds sweep files but no {INDEX_NAME}; use another folder "
+                "or overwrite (--restart)"
+            )
+        return {}
+    old = load_sweep_index(out_dir)
+    if old.get("fingerprint") != fp:
+        raise ValueError(
+            f"{out_dir} holds sweeps of other inputs or settings; use another folder, "
+            "or overwrite (--restart) to start afresh"
+        )
+    done = {
+        int(e["sweep"]): e for e in old["sweeps"] if (out_dir / e["file"]).is_file()
+    }
+    for f in files:
+        tail = f.stem.removeprefix("sweep_")
+        if (
+            tail.isdigit()
+            and int(tail) not in done
+            and f.name == sweep_file_name(int(tail))
+        ):
+            e = _entry_from_file(f)
+            if e is not None and e["sweep"] == int(tail):
+                done[int(tail)] = e
+    return done
+
+
+# --- the run -------------------------------------------------------------------------
+def _chunks_of(source, chunk_bytes):
+    if isinstance(source, EventStream):
+        n = max(1, chunk_bytes // 2)
+        for i in range(0, max(len(source), 1), n):
+            part = source.take(slice(i, i + n))
+            if i:
+                part = dataclasses.replace(
+                    part,
+                    trigger_t_us=part.trigger_t_us[:0],
+                    trigger_p=part.trigger_p[:0],
+                    trigger_id=part.trigger_id[:0],
+                )
+            yield part
+        return
+    yield from iter_events(source, chunk_bytes=chunk_bytes)
+
+
+def _source_info(source) -> dict:
+    if isinstance(source, EventStream):
+        t = source.t_us
+        return {
+            "path": None,
+            "events": len(source),
+            "first_us": int(t[0]) if t.size else None,
+            "last_us": int(t[-1]) if t.size else None,
+        }
+    p = Path(source)
+    if not p.is_file():
+        raise ValueError(f"event file not found: {p}")
+    return {"path": p.name, "bytes": p.stat().st_size}
+
+
+def _gif_bytes(frames: list[np.ndarray], fps: float) -> bytes:
+    from PIL import Image
+
+    images = [Image.fromarray(f) for f in frames]
+    buf = io.BytesIO()
+    images[0].save(
+        buf,
+        format="GIF",
+        save_all=True,
+        append_images=images[1:],
+        duration=max(20, int(round(1000.0 / fps))),
+        loop=0,
+    )
+    return buf.getvalue()
+
+
+def write_preview_gif(
+    out_dir: str | os.PathLike,
+    path: str | os.PathLike | None = None,
+    *,
+    fps: float | None = None,
+    max_width: int = 320,
+    max_frames: int = 300,
+) -> Path | None:
+    """Write the sRGB sequence of a per-sweep dataset as an animated GIF.
+
+    Frames are the sweep files' `srgb` previews, shrunk by an integer factor to at most
+    `max_width` pixels and thinned evenly to at most `max_frames` (a GIF holds all
+    frames in memory); `fps` defaults to the sweep rate, capped at 50 (GIF timing is in
+    10 ms steps). Returns the path, or None when there are no sweeps.
+    """
+    out_dir = Path(out_dir)
+    index = load_sweep_index(out_dir)
+    entries = index["sweeps"]
+    if not entries:
+        return None
+    path = Path(path) if path is not None else out_dir / PREVIEW_NAME
+    step = max(1, math.ceil(len(entries) / max_frames))
+    shrink = max(1, math.ceil(index["width"] / max_width))
+    frames = []
+    for e in entries[::step]:
+        with np.load(out_dir / e["file"], allow_pickle=False) as d:
+            frames.append(np.asarray(d["srgb"])[::shrink, ::shrink])
+    rate = fps or min(50.0, 1e6 / index["period_us"] / step)
+    data = _gif_bytes(frames, rate)
+    atomic_write(path, lambda f: f.write(data))
+    return path
+
+
+def reconstruct_sweeps(
+    source: str | os.PathLike | EventStream,
+    rig: Rig,
+    out_dir: str | os.PathLike,
+    *,
+    solver: str = "auto",
+    config: ProblemConfig | None = None,
+    threshold_on_map: np.ndarray | None = None,
+    threshold_off_map: np.ndarray | None = None,
+    triggers: str = "auto",
+    period_us: float | None = None,
+    phase_us: float | None = None,
+    max_sweeps: int | None = None,
+    low_event_rel: float = 0.5,
+    chunk_bytes: int = DEFAULT_CHUNK_BYTES,
+    chunk_pixels: int = 2048,
+    sub_batch: int = 128,
+    mesh=None,
+    preview: bool = True,
+    overwrite: bool = False,
+    progress: bool = False,
+    on_sweep: Callable[[dict], None] | None = None,
+    index_interval_s: float = 1.0,
+) -> StreamResult:
+    """Reconstruct every sweep of a recording into its own cube file (resumable).
+
+    See the module docstring for the dataset format, the memory bound, resuming and
+    the per-sweep reference.
+
+    **Arguments:**
+
+    - `source`: an event file (`.raw` EVT 3.0/2.0 streamed in chunks, or `.npz`) or an
+      in-memory :class:`EventStream`.
+    - `rig`: the calibration; `threshold_on_map`, `threshold_off_map`: optional
+      per-pixel thresholds `(H, W)`, log units.
+    - `out_dir`: the dataset folder (created; its parent must exist).
+    - `solver`, `config`, `chunk_pixels`, `sub_batch`, `mesh`: as for
+      :func:`evhsi_jax.reconstruct` (`mesh` shards each sweep's pixels over devices).
+    - `triggers`: `"auto"` (encoder triggers if the first periods hold any, else the
+      period), `"require"` or `"ignore"`; without triggers, sweeps start at
+      `phase_us + j period_us` (defaults 0 and the rig's period; the band's sweep
+      origin, as `reconstruct`'s `t_start_us` — not a cut in the dead time).
+    - `max_sweeps`: stop after this many sweeps (default: all).
+    - `low_event_rel`: flag sweeps with fewer events than this × the median.
+    - `chunk_bytes`: bytes decoded per read (bounds the reader's memory).
+    - `preview`: write `preview.gif` when the run completes.
+    - `overwrite`: discard a dataset of other inputs/settings in `out_dir` instead of
+      refusing.
+    - `progress`: show a progress bar (sweeps/s).
+    - `on_sweep`: called with each finished sweep's index entry once its file is
+      written (an exception raised there stops the run like a crash would).
+    - `index_interval_s`: the least time between two index rewrites.
+
+    **Returns:** a :class:`StreamResult`.
+    """
+    from ._shard import is_main_process
+
+    t_run = time.perf_counter()
+    out_dir = Path(out_dir)
+    if not out_dir.parent.is_dir():
+        raise ValueError(f"cannot create {out_dir}: {out_dir.parent} does not exist")
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ValueError(f"{out_dir} exists and is not a folder")
+    if not 0 <= low_event_rel < 1:
+        raise ValueError(f"low_event_rel must be in [0, 1), got {low_event_rel}")
+    if triggers not in ("auto", "require", "ignore"):
+        raise ValueError(f"triggers must be auto, require or ignore, not {triggers!r}")
+    if max_sweeps is not None and max_sweeps < 1:
+        raise ValueError(f"max_sweeps must be >= 1, got {max_sweeps}")
+    writer = is_main_process()
+    spec = solver_spec(solver)
+    cfg = config or ProblemConfig()
+    period = float(period_us) if period_us else float(rig.period_us)
+    eta = float(rig.refractory_us)
+
+    chunks = _chunks_of(source, chunk_bytes)
+    cutter = _SweepCutter(chunks, period, triggers, phase_us)
+    sweeps_iter = iter(cutter)
+    try:
+        first = next(sweeps_iter)
+    except StopIteration:
+        raise ValueError(f"{source} holds no events") from None
+    w, h = cutter.geometry
+    settings = {
+        "source": _source_info(source),
+        "rig": rig.to_dict(width=w),
+        "solver": dataclasses.asdict(spec),
+        "config": dataclasses.asdict(cfg),
+        "threshold_maps": [_digest(threshold_on_map), _digest(threshold_off_map)],
+        "boundaries": cutter.mode,
+        "period_us": period,
+        "phase_us": cutter.phase,
+        "reference": "carry",
+    }
+    fp = _fingerprint(settings)
+
+    index_path = out_dir / INDEX_NAME
+    if writer:
+        out_dir.mkdir(exist_ok=True)
+    done = _finished_sweeps(out_dir, fp, overwrite=overwrite and writer)
+
+    index = {
+        "format": FORMAT,
+        "version": VERSION,
+        "fingerprint": fp,
+        "complete": False,
+        "height": h,
+        "width": w,
+        "channels": rig.channels,
+        "wavelengths_nm": [float(v) for v in rig.wavelengths_nm],
+        "period_us": period,
+        "boundaries": cutter.mode,
+        "reference": "carry: first event of a sweep refers to the release after the "
+        "pixel's last earlier event",
+        "low_event_rel": low_event_rel,
+        "median_events": 0.0,
+        "preview": None,
+        "settings": settings,
+        "sweeps": [],
+    }
+    last_write = [0.0]
+
+    def commit_index(force=False):
+        if not writer:
+            return
+        now = time.perf_counter()
+        if not force and now - last_write[0] < index_interval_s:
+            return
+        entries = [done[k] for k in sorted(done)]
+        index["median_events"] = _flag(entries, low_event_rel, period)
+        index["sweeps"] = entries
+        _write_json(index_path, index)
+        last_write[0] = now
+
+    last_t = np.full(h * w, -1, np.int64)  # last event time per pixel (-1: none)
+
+    def carry(ev: EventStream):
+        if len(ev):
+            pix = ev.y.astype(np.int64) * w + ev.x.astype(np.int64)
+            np.maximum.at(last_t, pix, ev.t_us)
+
+    n_new = n_skip = 0
+    solve_s = 0.0
+    bar = tqdm(disable=not progress, unit="sweep", desc="reconstruct sweeps")
+    try:
+        commit_index(force=True)
+        for k, start, stop, ev, before in _chain([first], sweeps_iter):
+            if max_sweeps is not None and k >= max_sweeps:
+                break
+            if before is not None:
+                carry(before)
+            if k in done and done[k]["start_us"] == start:
+                n_skip += 1
+                carry(ev)
+                bar.update(1)
+                continue
+            ref = np.where(last_t >= 0, last_t + TIMESTAMP_CENTRE_US + eta, np.nan)
+            t0 = time.perf_counter()
+            cube, info = reconstruct(
+                ev,
+                rig,
+                solver=spec,
+                config=cfg,
+                threshold_on_map=threshold_on_map,
+                threshold_off_map=threshold_off_map,
+                t_start_us=start,
+                reference_us=ref.reshape(h, w),
+                chunk_pixels=chunk_pixels,
+                sub_batch=sub_batch,
+                mesh=mesh,
+                return_info=True,
+            )
+            dt = time.perf_counter() - t0
+            solve_s += dt
+            carry(ev)
+            entry = {
+                "sweep": k,
+                "file": sweep_file_name(k),
+                "start_us": int(start),
+                "stop_us": int(stop),
+                "events": len(ev),
+                "pixels_solved": int(info.solved.sum()),
+                "seconds": round(dt, 4),
+            }
+            if writer:
+                srgb = np.round(255 * cube_to_srgb(cube, rig.wavelengths_nm))
+                save_cube(
+                    out_dir / entry["file"],
+                    cube,
+                    rig.wavelengths_nm,
+                    srgb=srgb.astype(np.uint8),
+                    events_per_pixel=info.events.astype(np.int32),
+                    kkt=info.kkt,
+                    sweep=np.int64(k),
+                    start_us=np.int64(start),
+                    stop_us=np.int64(stop),
+                    events=np.int64(len(ev)),
+                )
+            done[k] = entry
+            n_new += 1
+            bar.update(1)
+            bar.set_postfix_str(f"{h * w / max(dt, 1e-9):,.0f} px/s", refresh=False)
+            commit_index()
+            if on_sweep is not None:
+                on_sweep(dict(entry))
+        index["complete"] = True  # every sweep (up to max_sweeps) is done
+    finally:
+        bar.close()
+        commit_index(force=True)
+    if writer and preview and index["complete"] and done:
+        gif = write_preview_gif(out_dir)
+        index["preview"] = gif.name if gif else None
+        commit_index(force=True)
+    entries = index["sweeps"]
+    return StreamResult(
+        out_dir=out_dir,
+        index=index,
+        sweeps=len(entries),
+        reconstructed=n_new,
+        skipped=n_skip,
+        low_event_sweeps=[e["sweep"] for e in entries if e["low_events"]],
+        seconds=time.perf_counter() - t_run,
+        solve_seconds=solve_s,
+    )
+
+
+def _chain(*its):
+    for it in its:
+        yield from it
