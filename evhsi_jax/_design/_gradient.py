@@ -86,7 +86,8 @@ def design_value_and_grad(
     **Returns:** `(loss, grad, aux)` — $\\log \\bar e + $ penalty, its gradient
     (a :class:`DesignParams` of unconstrained derivatives), and `aux` with
     `log_mse`, `psnr_db`, `events_per_pixel`, `exact_events_per_pixel`,
-    `event_rate_ev_s`, `truncated`, `constraints`, `penalty`.
+    `event_rate_ev_s`, `truncated`, `constraints`, `penalty` and `grad_log_mse`
+    (the error part of the gradient alone, without the penalties).
     """
     n = problem.truth.shape[0]
     z = jr.normal(key, (n, 2), problem.truth.dtype)
@@ -128,6 +129,7 @@ def design_value_and_grad(
         "truncated": aux["truncated"],
         "constraints": aux["constraints"],
         "penalty": aux["penalty"],
+        "grad_log_mse": g_err,
     }
     return values[0] + values[1], grad, out
 

@@ -99,6 +99,15 @@ def optimise_design(
 
     key = jax.random.key(0) if key is None else key
     opt = optax.adam(learning_rate)
+
+    @jax.jit
+    def step_fn(g, state, u):
+        # optax mixes Python floats with its int32 step count (`b1 ** count`), which
+        # strict dtype promotion (our tests) rejects: allow standard promotion here.
+        with jax.numpy_dtype_promotion("standard"):
+            updates, state = opt.update(g, state, u)
+            return optax.apply_updates(u, updates), state
+
     state = opt.init(u)
     trajectory, tail = [], []
     t0 = time.perf_counter()
@@ -132,8 +141,7 @@ def optimise_design(
             tail.append(u)
         if step == steps:
             break
-        updates, state = opt.update(g, state, u)
-        u = optax.apply_updates(u, updates)
+        u, state = step_fn(g, state, u)
     u_avg = jax.tree.map(lambda *v: jnp.mean(jnp.stack(v), axis=0), *tail)
     return DesignResult(
         params=space.from_unconstrained(u_avg),
