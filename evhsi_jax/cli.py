@@ -142,6 +142,8 @@ def cmd_info(args):
 def cmd_reconstruct(args):
     if args.per_sweep:
         return _reconstruct_per_sweep(args)
+    if args.max_sweeps is not None or args.restart:
+        raise ValueError("--max-sweeps and --restart apply only with --per-sweep")
     from ._cubefile import save_cube
     from ._io import read_events
     from ._reconstruct import reconstruct

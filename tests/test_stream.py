@@ -180,5 +180,7 @@ def test_cli_per_sweep(recording, tmp_path, capsys):
     assert main([*argv, "--per-sweep", "--quiet"]) == 0
     assert "2 already done" in capsys.readouterr().out
     assert load_sweep_index(out)["complete"]
+    assert main([*argv, "--max-sweeps", "2"]) == 2  # per-sweep options need the flag
+    assert "only with --per-sweep" in capsys.readouterr().err
     assert main([*argv[:-1], str(tmp_path / "x.npz"), "--per-sweep"]) == 2
     assert "is a folder" in capsys.readouterr().err
