@@ -4,9 +4,10 @@ Every run simulates a gray-chart capture from `true_rig.json` (with the column-o
 wiggle and camera tilt of `config.json`) with a new sensor (seed: a new threshold map),
 then fits from a starting rig that is off in a different direction:
 
-- `paper`: the default rig (β −7.4 %, thresholds +12 % / −13 %, c −17 %);
-- `high`: β +10 %, both thresholds 0.19 (+12 % / +46 %), c +40 %;
-- `low-shifted`: β −10 %, thresholds 0.105 / 0.16 (ON < OFF, −38 % / +23 %), c −30 %,
+- `paper`: the default rig (against the truth: β −7.4 %, C_on −12 %, C_off +15 %,
+  c −17 %; τx 2.8 µs RMS off, the wiggle);
+- `high`: β +10 %, both thresholds 0.19 (C_on +12 %, C_off +46 %), c +40 %;
+- `low-shifted`: β −10 %, thresholds 0.105 / 0.16 (C_on −38 %, C_off +23 %), c −30 %,
   and every column offset shifted by 2 samples (56 µs).
 
 Reports per run the parameter errors against the truth (thresholds against the sensor's
