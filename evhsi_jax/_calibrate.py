@@ -203,20 +203,6 @@ def spectral_traces(rig: Rig, spectra) -> BandTable:
     )
 
 
-def _pixel_steps(rig, traces, t_us, mask, offset, s_idx):
-    """Model log steps $\\log I(τ_k) - \\log I(ρ_k)$ of one pixel's events (0 in padding)."""
-    c1 = rig.baseline_rel + rig.log_eps
-    t_ref = jnp.concatenate(
-        [jnp.zeros((1,), t_us.dtype), t_us[:-1] + rig.refractory_us]
-    )
-
-    def level(t):
-        a = lookup(traces, rig.band_centre_nm(t, offset), order=3)[..., s_idx]
-        return jnp.log(jnp.maximum(a, 0.0) + c1)
-
-    return jnp.where(mask, level(t_us) - level(t_ref), 0.0)
-
-
 def chart_log_steps(rig: Rig, data, traces=None):
     """Model log steps of every chart event, shape `(n, k)` (0 in padding).
 
@@ -229,10 +215,22 @@ def chart_log_steps(rig: Rig, data, traces=None):
     elif traces is None:
         raise ValueError("pass the spectral traces with device arrays")
     t, _, m, col, s_idx = data
-    offsets = rig.column_offsets(_width(rig, col))[col]
-    return jax.vmap(_pixel_steps, in_axes=(None, None, 0, 0, 0, 0))(
-        rig, traces, t, m, offsets, s_idx
+    offsets = rig.column_offsets(_width(rig, col))[col][:, None]
+    c1 = rig.baseline_rel + rig.log_eps
+    # References: the recording start for the first event, then τ_{k-1} + η.
+    t_ref = jnp.concatenate(
+        [jnp.zeros_like(t[:, :1]), t[:, :-1] + rig.refractory_us], axis=1
     )
+
+    def level(tt):
+        # Only each pixel's own chart spectrum is interpolated: the linearisation
+        # that Levenberg–Marquardt keeps then holds (n, k) arrays, not (n, k, S).
+        a = lookup(
+            traces, rig.band_centre_nm(tt, offsets), order=3, column=s_idx[:, None]
+        )
+        return jnp.log(jnp.maximum(a, 0.0) + c1)
+
+    return jnp.where(m, level(t) - level(t_ref), 0.0)
 
 
 def chart_residuals(rig: Rig, data, traces=None, *, per_pixel: bool = False):

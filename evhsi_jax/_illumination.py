@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import jax.scipy.special as jsp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Float, Int
 
 from ._rig import Rig
 
@@ -127,9 +127,18 @@ def band_table(rig: Rig, *, fwhm_bound_nm: float | None = None) -> BandTable:
 
 
 def lookup(
-    table: BandTable, centre_nm: Float[Array, "..."], *, order: int = 1
-) -> Float[Array, "... f"]:
+    table: BandTable,
+    centre_nm: Float[Array, "..."],
+    *,
+    order: int = 1,
+    column: Int[Array, "..."] | None = None,
+) -> Float[Array, "..."]:
     """Interpolate the table at band centres `centre_nm` (any shape).
+
+    Returns shape `centre_nm.shape + (f,)`; with `column` (integer indices broadcastable
+    to `centre_nm`), only that column of the table at each point, shape
+    `centre_nm.shape` — f times less work and memory (under autodiff too) when each
+    point needs one column.
 
     Outside the table the response is zero. `order=1` is linear (value error ~2e-5 of
     the peak at 0.1 nm steps, derivative piecewise constant); `order=3` is cubic Hermite
@@ -144,14 +153,24 @@ def lookup(
     pos = jnp.clip(pos, 0, n - 1)
     i0f = jnp.clip(jnp.floor(pos), 0, n - 2)
     i0 = i0f.astype(jnp.int32)
-    frac = (pos - i0f)[..., None]
-    vals = table.values
+    if column is None:
+        frac = (pos - i0f)[..., None]
+
+        def vals(i):
+            return table.values[i]
+    else:
+        frac = pos - i0f
+        col = jnp.broadcast_to(column, i0.shape)
+
+        def vals(i):
+            return table.values[i, col]
+
     if order == 1:
-        v = vals[i0] * (1 - frac) + vals[i0 + 1] * frac
+        v = vals(i0) * (1 - frac) + vals(i0 + 1) * frac
     elif order == 3:
-        p0 = vals[jnp.maximum(i0 - 1, 0)]
-        p1, p2 = vals[i0], vals[i0 + 1]
-        p3 = vals[jnp.minimum(i0 + 2, n - 1)]
+        p0 = vals(jnp.maximum(i0 - 1, 0))
+        p1, p2 = vals(i0), vals(i0 + 1)
+        p3 = vals(jnp.minimum(i0 + 2, n - 1))
         m1, m2 = 0.5 * (p2 - p0), 0.5 * (p3 - p1)
         f2, f3 = frac * frac, frac * frac * frac
         v = (
@@ -162,7 +181,7 @@ def lookup(
         )
     else:
         raise ValueError(f"order must be 1 or 3, got {order}")
-    return jnp.where(inside[..., None], v, 0.0)
+    return jnp.where(inside if column is not None else inside[..., None], v, 0.0)
 
 
 def column_time_table(
