@@ -6,9 +6,9 @@ The error of a reconstruction from events changes with the design in two ways: e
 the QP) and events *appear or vanish* (jumps). The count is governed by the threshold C
 and the constant light c — lowering either adds events everywhere, the main way they
 lower the error — and only negligibly by the band (FWHM) or the sweep (β, λ0, f,
-through the refractory time). A pathwise derivative never sees a jump: measured on
-the training set, it gets the sign of ∂error/∂C wrong at high thresholds (few events)
-and its size ~3× off elsewhere (see experiments/DESIGN_STUDY.md).
+through the refractory time). A pathwise derivative never sees a jump, so it
+can miss the count effect of C and c (experiments/design_study.py compares both
+estimators with finite differences of the exact pipeline).
 
 So the loss is the *expected* error over the sensor's per-pixel threshold mismatch
 and the constant light's non-uniformity, $F(θ) = E_z[\\,\\overline{e}(θ, z)]$ with

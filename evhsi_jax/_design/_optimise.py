@@ -27,7 +27,7 @@ class DesignResult:
     """The outcome of :func:`optimise_design`.
 
     - `params`: the final design (the average of the last `average` iterates in the
-      unconstrained space — the gradient is noisy, see DESIGN_STUDY.md).
+      unconstrained space — the likelihood-ratio gradient is noisy).
     - `initial`: the starting design.
     - `trajectory`: one dict per step: `step`, `loss`, `log_mse`, `psnr_db`,
       `events_per_pixel`, `event_rate_ev_s`, `penalty`, `constraints`, `params`,
