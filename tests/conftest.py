@@ -26,3 +26,15 @@ def shared_data():
     if d is None:
         pytest.skip("../shared/data is absent")
     return d
+
+
+@pytest.fixture(scope="module", params=["numba", "numpy"])
+def io_backend(request):
+    """Run a module's event-file tests with the numba kernels and the NumPy reference
+    (`pytestmark = pytest.mark.usefixtures("io_backend")`)."""
+    from evhsi_jax._io import _jit
+
+    if request.param == "numba" and not _jit.numba_available():
+        pytest.skip("no numba")
+    with _jit.use_backend(request.param):
+        yield request.param

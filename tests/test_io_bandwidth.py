@@ -10,7 +10,6 @@ from hypothesis import strategies as st
 from evhsi_jax import EventStream
 from evhsi_jax._io import (
     EventReader,
-    _jit,
     bandwidth_summary,
     evt3_bytes,
     frame_bytes,
@@ -18,20 +17,8 @@ from evhsi_jax._io import (
     write_evt3,
 )
 
-BACKENDS = [
-    pytest.param(
-        "numba",
-        marks=pytest.mark.skipif(not _jit.numba_available(), reason="no numba"),
-    ),
-    "numpy",
-]
-
-
-@pytest.fixture(scope="module", autouse=True, params=BACKENDS)
-def backend(request):
-    """Every test here runs with the compiled kernels and with the NumPy reference."""
-    with _jit.use_backend(request.param):
-        yield request.param
+# Every test here runs with the compiled kernels and with the NumPy reference.
+pytestmark = pytest.mark.usefixtures("io_backend")
 
 
 def stream(seed: int, n: int, span: int, triggers: int = 0) -> EventStream:

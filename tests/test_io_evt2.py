@@ -11,7 +11,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from evhsi_jax import EventStream
-from evhsi_jax._io import EventReader, _jit, describe_events, read_events
+from evhsi_jax._io import EventReader, describe_events, read_events
 
 DATA = Path(
     os.environ.get("EVHSI_SHARED_DATA", Path(__file__).parents[2] / "shared" / "data")
@@ -20,20 +20,8 @@ SAMPLE = DATA / "evt2_sample.raw"
 HEADER = b"% evt 2.0\n% format EVT2;height=480;width=640\n% end\n"
 
 
-BACKENDS = [
-    pytest.param(
-        "numba",
-        marks=pytest.mark.skipif(not _jit.numba_available(), reason="no numba"),
-    ),
-    "numpy",
-]
-
-
-@pytest.fixture(scope="module", autouse=True, params=BACKENDS)
-def backend(request):
-    """Every test here runs with the compiled kernels and with the NumPy reference."""
-    with _jit.use_backend(request.param):
-        yield request.param
+# Every test here runs with the compiled kernels and with the NumPy reference.
+pytestmark = pytest.mark.usefixtures("io_backend")
 
 
 def evt2_words(ev: EventStream, start_us: int = 0) -> np.ndarray:

@@ -15,7 +15,6 @@ from evhsi_jax._io import (
     DecodeError,
     EventReader,
     _evt3_encode,
-    _jit,
     describe_events,
     encode_evt3_words,
     evt3_word_count,
@@ -36,20 +35,8 @@ FAST = settings(
 COLUMNS = ("x", "y", "p", "t_us", "trigger_t_us", "trigger_p", "trigger_id")
 
 
-BACKENDS = [
-    pytest.param(
-        "numba",
-        marks=pytest.mark.skipif(not _jit.numba_available(), reason="no numba"),
-    ),
-    "numpy",
-]
-
-
-@pytest.fixture(scope="module", autouse=True, params=BACKENDS)
-def backend(request):
-    """Every test here runs with the compiled kernels and with the NumPy reference."""
-    with _jit.use_backend(request.param):
-        yield request.param
+# Every test here runs with the compiled kernels and with the NumPy reference.
+pytestmark = pytest.mark.usefixtures("io_backend")
 
 
 def random_stream(

@@ -17,7 +17,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from evhsi_jax import EventStream
-from evhsi_jax._io import DecodeReport, EventReader, _jit, write_evt3
+from evhsi_jax._io import DecodeReport, EventReader, write_evt3
 from evhsi_jax._io._evt3_decode import Evt3State, carry_evt3_state, scan_evt3_words
 
 FUZZ = settings(
@@ -29,20 +29,8 @@ HEADER3 = b"% evt 3.0\n% format EVT3;height=64;width=96\n% end\n"
 HEADER2 = b"% evt 2.0\n% geometry 96x64\n% end\n"
 
 
-BACKENDS = [
-    pytest.param(
-        "numba",
-        marks=pytest.mark.skipif(not _jit.numba_available(), reason="no numba"),
-    ),
-    "numpy",
-]
-
-
-@pytest.fixture(scope="module", autouse=True, params=BACKENDS)
-def backend(request):
-    """Every test here runs with the compiled kernels and with the NumPy reference."""
-    with _jit.use_backend(request.param):
-        yield request.param
+# Every test here runs with the compiled kernels and with the NumPy reference.
+pytestmark = pytest.mark.usefixtures("io_backend")
 
 
 # Word types weighted towards the ones that carry state, so streams go deep.

@@ -14,7 +14,6 @@ from hypothesis import strategies as st
 from evhsi_jax import EventStream
 from evhsi_jax._io import (
     EventReader,
-    _jit,
     iter_events,
     read_events,
     read_events_window,
@@ -28,20 +27,8 @@ DATA = Path(
 COLUMNS = ("x", "y", "p", "t_us", "trigger_t_us", "trigger_p", "trigger_id")
 
 
-BACKENDS = [
-    pytest.param(
-        "numba",
-        marks=pytest.mark.skipif(not _jit.numba_available(), reason="no numba"),
-    ),
-    "numpy",
-]
-
-
-@pytest.fixture(scope="module", autouse=True, params=BACKENDS)
-def backend(request):
-    """Every test here runs with the compiled kernels and with the NumPy reference."""
-    with _jit.use_backend(request.param):
-        yield request.param
+# Every test here runs with the compiled kernels and with the NumPy reference.
+pytestmark = pytest.mark.usefixtures("io_backend")
 
 
 def bursts(seed: int, n_bursts: int, *, gap_us: int = 3, triggers: int = 0):
