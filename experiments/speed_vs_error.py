@@ -4,15 +4,16 @@ Setup: the paper's rig (threshold mismatch σ = 0.01, refractory 50 µs), one sw
 the ColorChecker (default 48×72 px), reconstructed with the per-pixel thresholds (as
 after calibration) so solver differences are not hidden under the threshold error. For
 each solver configuration the full pipeline (events → cube, host grouping included,
-compilation excluded) is timed: median of `--repeats` runs, in this one process.
+compilation excluded) is timed: median of `--repeats` runs, in this one process
+(a single timed run for configurations whose first call took over 20 s).
 
 Reported per configuration: pixels/s, SAM/PSNR against the truth, and the mean spectral
 angle to the *converged answer* (the exact active-set solution in float64) — "equal
 accuracy" means within 0.1° of it. Writes experiments/results/speed_vs_error.json and
 .png (Pareto plot) and prints a markdown table.
 
-Run: `.venv/bin/python experiments/speed_vs_error.py [--size 48x72] [--repeats 3]`
-(about 10 min on 2 cores; the jaxopt solvers dominate).
+Run: `.venv/bin/python experiments/speed_vs_error.py [--size 32x48] [--repeats 3]`
+(about 25 min on 2 cores; the jaxopt solvers dominate).
 """
 
 from __future__ import annotations
@@ -44,9 +45,12 @@ CONFIGS = [
     ("boxcdqp", dict(iters=200, tol=1e-9)),
     ("boxcdqp", dict(iters=1000, tol=1e-9)),
     ("boxcdqp", dict(iters=5000, tol=1e-9)),
-    ("boxosqp", dict(iters=500, tol=1e-6)),
-    ("boxosqp", dict(iters=4000, tol=1e-6)),
+    ("boxosqp", dict(iters=200, tol=1e-6)),
 ]
+
+
+SLOW_S = 20.0
+SLOW_F64_S = 60.0
 
 
 def run(dtype: str, size, repeats, configs):
@@ -70,7 +74,9 @@ def run(dtype: str, size, repeats, configs):
             )
             first = time.perf_counter() - t0
             times = []
-            for _ in range(repeats):
+            # A configuration whose first call took over SLOW_S is timed once: the
+            # slowest jaxopt budgets would otherwise take most of an hour.
+            for _ in range(repeats if first < SLOW_S else 1):
                 t0 = time.perf_counter()
                 cube = ev.reconstruct(events, rig, solver=spec, **kw)
                 times.append(time.perf_counter() - t0)
@@ -100,75 +106,37 @@ def run(dtype: str, size, repeats, configs):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--size", default="48x72")
+    ap.add_argument("--size", default="32x48")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--quick", action="store_true", help="fewer configurations")
     args = ap.parse_args()
     size = ev.parse_size(args.size)
     configs = CONFIGS if not args.quick else [CONFIGS[0], CONFIGS[3], CONFIGS[8]]
-    rows = run("float32", size, args.repeats, configs) + run(
-        "float64", size, args.repeats, configs
-    )
-    ref = next(
-        r for r in rows if r["solver"] == "active-set" and r["dtype"] == "float64"
-    )
-    base = (
-        next(
-            r
-            for r in rows
-            if r["solver"] == "boxcdqp"
-            and r["dtype"] == "float32"
-            and r["iters"]
-            == max(c[1].get("iters", 0) for c in configs if c[0] == "boxcdqp")
-        )
-        if any(c[0] == "boxcdqp" for c in configs)
-        else None
-    )
-    for r in rows:
-        r["sam_to_converged_deg"] = ev.sam_deg(r["cube"], ref["cube"])
-        r["equal_accuracy"] = bool(r["sam_to_converged_deg"] <= 0.1)
+    rows32 = run("float32", size, args.repeats, configs)
+    # float64 repeats only the configurations whose float32 first call took under
+    # SLOW_F64_S: BoxOSQP and the largest BoxCDQP budget take many minutes each here.
+    slow = {
+        (r["solver"], r.get("iters")) for r in rows32 if r["first_call_s"] > SLOW_F64_S
+    }
+    configs64 = [c for c in configs if (c[0], c[1].get("iters")) not in slow]
+    rows = rows32 + run("float64", size, args.repeats, configs64)
+    summary = summarise(rows)
     print(
         f"\n{len(rows)} runs, {size[0]}x{size[1]} px, machine: {os.cpu_count()} CPU "
         f"({platform.processor() or platform.machine()}), jax {jax.__version__}\n"
     )
     print(
-        "| solver | budget | dtype | px/s | SAM° vs truth | PSNR dB | SAM° to converged |"
-        " equal accuracy |"
+        "| solver | budget | dtype | px/s | SAM° vs truth | PSNR dB | SAM° to converged "
+        "(same dtype) | SAM° to float64 converged | equal accuracy |"
     )
-    print("|---|---|---|---:|---:|---:|---:|---|")
+    print("|---|---|---|---:|---:|---:|---:|---:|---|")
     for r in rows:
-        budget = r.get("iters", "-")
         print(
-            f"| {r['solver']} | {budget} | {r['dtype']} | {r['px_per_s']:,.0f} | "
-            f"{r['sam_deg']:.3f} | {r['psnr_db']:.2f} | {r['sam_to_converged_deg']:.3f} | "
+            f"| {r['solver']} | {r.get('iters', '-')} | {r['dtype']} | "
+            f"{r['px_per_s']:,.0f} | {r['sam_deg']:.3f} | {r['psnr_db']:.2f} | "
+            f"{r['sam_to_converged_deg']:.3f} | "
+            f"{r.get('sam_to_float64_converged_deg', float('nan')):.3f} | "
             f"{'yes' if r['equal_accuracy'] else 'no'} |"
-        )
-    fast = max(
-        (r for r in rows if r["equal_accuracy"] and r["dtype"] == "float32"),
-        key=lambda r: r["px_per_s"],
-    )
-    ref_cd = max(
-        (
-            r
-            for r in rows
-            if r["equal_accuracy"]
-            and r["solver"] == "boxcdqp"
-            and r["dtype"] == "float32"
-        ),
-        key=lambda r: r["px_per_s"],
-        default=None,
-    )
-    summary = {
-        "fastest_equal_accuracy_float32": {k: fast[k] for k in ("solver", "px_per_s")}
-    }
-    if ref_cd is not None:
-        summary["speedup_vs_boxcdqp_equal_accuracy"] = (
-            fast["px_per_s"] / ref_cd["px_per_s"]
-        )
-    elif base is not None:
-        summary["boxcdqp_never_reached_equal_accuracy"] = True
-        summary["speedup_vs_slowest_boxcdqp_budget"] = (
-            fast["px_per_s"] / base["px_per_s"]
         )
     print("\n", json.dumps(summary))
     OUT.mkdir(exist_ok=True)
@@ -187,6 +155,60 @@ def main():
         )
     )
     _plot(rows, OUT / "speed_vs_error.png")
+
+
+def summarise(rows) -> dict:
+    """Add `sam_to_converged_deg` / `equal_accuracy` to each row; return the summary.
+
+    The converged answer of a dtype is the exact active-set solution *in that dtype*
+    (KKT residual ~1e-7 in float32, ~1e-15 in float64): float32 assembly perturbs the
+    problem itself, so its optimum lies ~1° (SAM) from the float64 optimum while being
+    as close to the truth; comparing a float32 solver with the float64 optimum would
+    measure the assembly, not the solver. Both distances are reported.
+    """
+    refs = {
+        d: next(
+            (r for r in rows if r["solver"] == "active-set" and r["dtype"] == d), None
+        )
+        for d in ("float32", "float64")
+    }
+    for r in rows:
+        ref = refs[r["dtype"]]
+        r["sam_to_converged_deg"] = float(ev.sam_deg(r["cube"], ref["cube"]))
+        if refs["float64"] is not None:
+            r["sam_to_float64_converged_deg"] = float(
+                ev.sam_deg(r["cube"], refs["float64"]["cube"])
+            )
+        r["equal_accuracy"] = bool(r["sam_to_converged_deg"] <= 0.1)
+    return speed_summary(rows)
+
+
+def speed_summary(rows) -> dict:
+    """Fastest solver at equal accuracy against BoxCDQP, per dtype."""
+    out = {}
+    for d in ("float32", "float64"):
+        rd = [r for r in rows if r["dtype"] == d]
+        eq = [r for r in rd if r["equal_accuracy"] and r["solver"] != "active-set"]
+        fast = max((r for r in rd if r["equal_accuracy"]), key=lambda r: r["px_per_s"])
+        cd = [r for r in rd if r["solver"] == "boxcdqp"]
+        cd_eq = [r for r in cd if r["equal_accuracy"]]
+        res = {"fastest": {k: fast[k] for k in ("solver", "px_per_s")}}
+        if cd_eq:
+            res["speedup_vs_boxcdqp_equal_accuracy"] = fast["px_per_s"] / max(
+                r["px_per_s"] for r in cd_eq
+            )
+        elif cd:
+            slowest = min(cd, key=lambda r: r["px_per_s"])
+            res["boxcdqp_never_reached_equal_accuracy"] = True
+            res["boxcdqp_largest_budget"] = slowest.get("iters")
+            res["speedup_vs_boxcdqp_largest_budget"] = (
+                fast["px_per_s"] / slowest["px_per_s"]
+            )
+        res["other_solvers_at_equal_accuracy"] = [
+            (r["solver"], r.get("iters")) for r in eq
+        ]
+        out[d] = res
+    return out
 
 
 def _plot(rows, path):

@@ -109,3 +109,15 @@ def test_distributed_passes_settings_to_jax(monkeypatch):
     monkeypatch.setenv("EVHSI_PROCESS_ID", "1")
     assert initialize_distributed()
     assert seen == dict(coordinator_address="host0:1234", num_processes=2, process_id=1)
+
+
+def test_cli_devices_asks_xla_for_host_devices(monkeypatch):
+    from evhsi_jax.cli import _cpu_devices
+
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_enable_fast_math=false")
+    _cpu_devices(1)
+    assert os.environ["XLA_FLAGS"] == "--xla_cpu_enable_fast_math=false"
+    _cpu_devices(2)
+    assert os.environ["XLA_FLAGS"].endswith("--xla_force_host_platform_device_count=2")
+    _cpu_devices(4)  # a count already there wins
+    assert "count=4" not in os.environ["XLA_FLAGS"]
