@@ -277,7 +277,10 @@ def design_loss(
     q_mat, q_vec, smooth_n = jax.vmap(one)(
         traces.values.T, log_i.T, step, t_cross, pol, mask, offsets, thr_p, c_p
     )
-    x = jax.vmap(box_qp)(q_mat, q_vec)
+    # One pixel per step (`lax.map`), not a batched while-loop with batched Cholesky:
+    # the vmapped form stalled inside XLA's CPU runtime in full-size design runs
+    # (all worker threads idle). The training sets are small, so this costs little.
+    x = jax.lax.map(lambda a: box_qp(*a), (q_mat, q_vec))
     pixel_mse = jnp.mean(jnp.square(x - problem.truth), axis=1)
     mse = jnp.mean(pixel_mse)
     log_mse = jnp.log(mse)
