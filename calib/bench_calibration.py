@@ -19,8 +19,7 @@ import time
 from pathlib import Path
 
 import jax.random as jr
-import numpy as np
-from run_calibration import true_rig
+from run_calibration import rms, true_rig, true_values
 
 import evhsi_jax as ev
 
@@ -43,15 +42,7 @@ def main():
     res = ev.calibrate(events, chart, ev.Rig(), rows_per_label=args.rows_per_patch)
     wall = time.perf_counter() - t0
     rig = res.rig
-    tau_err = np.asarray(rig.column_offsets_us, np.float64) - np.asarray(
-        truth.column_offsets(w), np.float64
-    )
-    true_vals = {
-        "threshold_on": float(np.mean(sim.threshold_on)),
-        "threshold_off": float(np.mean(sim.threshold_off)),
-        "beta_nm_per_rad": float(truth.beta_nm_per_rad),
-        "baseline_rel": float(truth.baseline_rel),
-    }
+    true_vals = true_values(truth, sim)
     out = {
         "command": f"python calib/bench_calibration.py --width {w} --height {h} "
         f"--rows-per-patch {args.rows_per_patch}",
@@ -65,10 +56,8 @@ def main():
         "error_pct": {
             k: 100 * (float(getattr(rig, k)) / v - 1) for k, v in true_vals.items()
         },
-        "tau_rms_error_us": float(np.sqrt(np.mean(tau_err**2))),
-        "threshold_map_rms": float(
-            np.sqrt(np.mean((res.threshold_on_map - sim.threshold_on) ** 2))
-        ),
+        "tau_rms_error_us": rms(rig.column_offsets_us, truth.column_offsets(w)),
+        "threshold_map_rms": rms(res.threshold_on_map, sim.threshold_on),
     }
     path = HERE / "out" / f"bench_calibration_{w}.json"
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import jax.random as jr
 import numpy as np
-from run_calibration import true_rig
+from run_calibration import rms, true_rig, true_values
 
 import evhsi_jax as ev
 
@@ -82,12 +82,7 @@ def main():
         events, sim = ev.simulate(
             chart, truth, sweeps=args.sweeps, key=jr.key(100 + seed), return_info=True
         )
-        true_vals = {
-            "threshold_on": float(np.mean(sim.threshold_on)),
-            "threshold_off": float(np.mean(sim.threshold_off)),
-            "beta_nm_per_rad": float(truth.beta_nm_per_rad),
-            "baseline_rel": float(truth.baseline_rel),
-        }
+        true_vals = true_values(truth, sim)
         for name in STARTS:
             init = start_rig(name, w)
             res = ev.calibrate(
@@ -99,16 +94,12 @@ def main():
             for k, tv in true_vals.items():
                 row[f"{k}_init_err_pct"] = 100 * (float(getattr(init, k)) / tv - 1)
                 row[f"{k}_err_pct"] = 100 * (float(getattr(rig, k)) / tv - 1)
-            tau0 = np.asarray(init.column_offsets(w), np.float64)
-            tau = np.asarray(rig.column_offsets_us, np.float64)
-            row["tau_init_rms_us"] = float(np.sqrt(np.mean((tau0 - tau_true) ** 2)))
-            row["tau_rms_us"] = float(np.sqrt(np.mean((tau - tau_true) ** 2)))
-            row["map_rms"] = float(
-                np.sqrt(
-                    0.5 * np.mean((res.threshold_on_map - sim.threshold_on) ** 2)
-                    + 0.5 * np.mean((res.threshold_off_map - sim.threshold_off) ** 2)
-                )
-            )
+            row["tau_init_rms_us"] = rms(init.column_offsets(w), tau_true)
+            row["tau_rms_us"] = rms(rig.column_offsets_us, tau_true)
+            # Both maps together: the root of the mean of the two mean squares.
+            map_on = rms(res.threshold_on_map, sim.threshold_on)
+            map_off = rms(res.threshold_off_map, sim.threshold_off)
+            row["map_rms"] = float(np.sqrt(0.5 * map_on**2 + 0.5 * map_off**2))
             row["map_true_spread"] = float(np.std(sim.threshold_on))
             row["finite"] = bool(np.isfinite(res.rms_residual))
             runs.append(row)

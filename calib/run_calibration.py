@@ -57,6 +57,26 @@ def true_rig(cfg: dict, width: int, base: Path) -> ev.Rig:
     return ev.Rig.from_dict(data)
 
 
+FITTED = ("threshold_on", "threshold_off", "beta_nm_per_rad", "baseline_rel")
+
+
+def true_values(truth: ev.Rig, sim) -> dict:
+    """The true value of each globally fitted parameter; a threshold's is the
+    simulated sensor's population mean (`sim`: the simulation's info)."""
+    return {
+        "threshold_on": float(np.mean(sim.threshold_on)),
+        "threshold_off": float(np.mean(sim.threshold_off)),
+        "beta_nm_per_rad": float(truth.beta_nm_per_rad),
+        "baseline_rel": float(truth.baseline_rel),
+    }
+
+
+def rms(a, b) -> float:
+    """Root mean square of a − b (float64)."""
+    d = np.asarray(a, np.float64) - np.asarray(b, np.float64)
+    return float(np.sqrt(np.mean(d**2)))
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--config", default=str(HERE / "config.json"))
@@ -110,34 +130,25 @@ def main():
         "rms_residual_initial_log": res.rms_residual_initial,
     }
     rows = []
-    for k in ("threshold_on", "threshold_off", "beta_nm_per_rad", "baseline_rel"):
+    true_vals = true_values(truth, sim) if simulated else {}
+    for k in FITTED:
         row = {
             "parameter": k,
             "initial": float(getattr(init, k)),
             "fitted": float(getattr(rig, k)),
         }
         if simulated:
-            tv = float(getattr(truth, k))
-            if k.startswith("threshold"):  # the sensor's population mean
-                tv = float(
-                    np.mean(sim.threshold_on if k.endswith("on") else sim.threshold_off)
-                )
+            tv = true_vals[k]
             row.update(true=tv, error_pct=100 * (row["fitted"] / tv - 1))
         rows.append(row)
     report["parameters"] = rows
     tau_fit = np.asarray(rig.column_offsets_us, np.float64)
+    tau_true = np.asarray(truth.column_offsets(w), np.float64) if simulated else None
     if simulated:
-        tau_true = np.asarray(truth.column_offsets(w), np.float64)
-        report["column_offsets_rms_error_us"] = float(
-            np.sqrt(np.mean((tau_fit - tau_true) ** 2))
-        )
+        report["column_offsets_rms_error_us"] = rms(tau_fit, tau_true)
         report["threshold_map_rms_error"] = {
-            "on": float(
-                np.sqrt(np.mean((res.threshold_on_map - sim.threshold_on) ** 2))
-            ),
-            "off": float(
-                np.sqrt(np.mean((res.threshold_off_map - sim.threshold_off) ** 2))
-            ),
+            "on": rms(res.threshold_on_map, sim.threshold_on),
+            "off": rms(res.threshold_off_map, sim.threshold_off),
             "true_spread": float(np.std(sim.threshold_on)),
         }
     print(f"\n| parameter | initial | fitted |{' true | error |' if simulated else ''}")
@@ -215,7 +226,7 @@ def main():
         rig,
         res,
         tau_fit,
-        tau_true if simulated else None,
+        tau_true,
     )
     (out / "report.json").write_text(json.dumps(report, indent=1, default=float))
     print(f"\nwrote {out}/calibration.json, report.json, report.png")
