@@ -22,7 +22,7 @@ from jaxtyping import Array, Float
 from .._illumination import band_table
 from .._rig import Rig
 from ._problem import ProblemConfig, pixel_system
-from ._solvers import active_set
+from ._solvers import active_set, cho_factor, reduced
 
 __all__ = ["box_qp", "reconstruct_pixels"]
 
@@ -30,7 +30,7 @@ _ACTIVE_SET_STEPS = 24
 
 
 def _forward(q_mat, q_vec):
-    return active_set(q_mat, q_vec, iters=_ACTIVE_SET_STEPS)
+    return active_set(q_mat, q_vec, iters=_ACTIVE_SET_STEPS, robust=True)
 
 
 @jax.custom_vjp
@@ -48,9 +48,7 @@ def _fwd(q_mat, q_vec):
 def _bwd(res, x_bar):
     q_mat, x = res
     free = (x > 0).astype(q_mat.dtype)
-    big = jnp.max(jnp.abs(jnp.diag(q_mat)))
-    q_red = q_mat * free[:, None] * free[None, :] + jnp.diag((1.0 - free) * big)
-    c = jax.scipy.linalg.cho_factor(q_red, lower=True)
+    c = cho_factor(reduced(q_mat, x > 0), robust=True)
     u = jax.scipy.linalg.cho_solve(c, x_bar * free) * free
     return -jnp.outer(u, x), -u
 
