@@ -14,12 +14,6 @@ import pytest
 
 import evhsi_jax as ev
 
-# Skipped by default (run with `-m slow`): the design loss's computations have stalled
-# inside XLA's CPU runtime now and then on the 2-core machine (all XLA worker threads
-# idle, the caller waiting; see experiments/DESIGN_STUDY.md), and a stalled test would
-# hang the whole suite. They passed when they ran (217 s).
-pytestmark = pytest.mark.slow
-
 # A small box (sweep ≥ 10 /s keeps the time grid at 2560 steps) and 3 spectra.
 SPACE = ev.DesignSpace(sweep_rate_hz=(10.0, 60.0), beta_nm_per_rad=(150.0, 400.0))
 NAMES = (
@@ -170,7 +164,12 @@ def test_optimiser_keeps_bounds_and_lowers_loss(tmp_path):
     the box, the loss and the event rate go down, the trajectory file is written."""
     problem = ev.design_problem(spectra_limit=2, gains=(1.0,), space=SPACE)
     res = ev.optimise_design(
-        problem, steps=4, learning_rate=0.5, average=2, print_every=None
+        problem,
+        steps=4,
+        learning_rate=0.5,
+        final_learning_rate=0.1,
+        average=2,
+        print_every=None,
     )
     traj = res.trajectory
     assert len(traj) == 5

@@ -20,16 +20,7 @@ def test_notebooks_found():
     assert [p.name[:2] for p in NOTEBOOKS] == ["01", "02", "03"]
 
 
-# The optical-design notebook runs the design loss, which has stalled inside XLA's CPU
-# runtime now and then (see tests/test_design.py): it runs with `-m slow` only.
-@pytest.mark.parametrize(
-    "path",
-    [
-        pytest.param(p, marks=pytest.mark.slow) if "design" in p.stem else p
-        for p in NOTEBOOKS
-    ],
-    ids=lambda p: p.stem,
-)
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.stem)
 def test_notebook_runs(path, monkeypatch):
     monkeypatch.setenv("EVHSI_NB_SMALL", "1")
     # Warnings are errors in this suite; in the kernel they only print.
