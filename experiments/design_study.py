@@ -7,7 +7,12 @@ channels; the application asks for at least 3 sweeps/s (the lower end of the box
 
 1. Optimise the differentiable design loss (expected log-MSE of the per-pixel QP
    reconstruction over the sensor's threshold mismatch, on `tcs` test-colour samples
-   at three brightness gains) with Adam from the paper's default design.
+   at two brightness gains) with Adam (gradient clipped, cosine-decayed step) from two
+   starts: the paper's default design (30 sweeps/s, 10× over the event budget) and
+   the paper's optics at the required 3 sweeps/s (just over it). The loss is a
+   stochastic, staircase-like function, so the two runs may end in different places;
+   the optimum is the end point with the lower loss averaged over the same fixed
+   jitter draws (common random numbers) — chosen on the training set only.
 2. Validate the default and the optimum with the exact simulator and the standard
    reconstruction (`evhsi_jax.simulate` + `evhsi_jax.reconstruct`, per-pixel
    thresholds C·(1 + 0.067 z) known to the reconstruction) on HELD-OUT reflectances:
@@ -129,14 +134,24 @@ def _vg(score: bool):
     return vg
 
 
+def crn_loss(problem, p, n_keys):
+    """Design loss (log-MSE + penalty) averaged over `n_keys` fixed jitter draws."""
+    u = problem.space.to_unconstrained(p)
+    vals = [float(_vg(True)(problem, u, jr.key(500 + i))[0]) for i in range(n_keys)]
+    return float(np.mean(vals)), float(np.std(vals) / np.sqrt(n_keys))
+
+
 def soft_gradient(problem, p, n_keys, score=True):
     """d log-MSE / d(physical parameter) from the design gradient (error part only),
-    averaged over `n_keys` jitter draws."""
+    averaged over `n_keys` jitter draws: `({name: mean}, {name: standard error})`."""
     u = problem.space.to_unconstrained(p)
     vg = _vg(score)
     gs = [vg(problem, u, jr.key(100 + i))[2]["grad_log_mse"] for i in range(n_keys)]
     g_u = jax.tree.map(lambda *v: jnp.mean(jnp.stack(v)), *gs)
-    out = {}
+    g_se = jax.tree.map(
+        lambda *v: jnp.std(jnp.stack(v)) / np.sqrt(max(n_keys - 1, 1)), *gs
+    )
+    out, se = {}, {}
     for name in NAMES:
 
         def phys(v, name=name):
@@ -149,13 +164,14 @@ def soft_gradient(problem, p, n_keys, score=True):
 
         dp_du = jax.grad(phys)(getattr(u, name))
         out[name] = float(getattr(g_u, name) / dp_du)
-    return out
+        se[name] = float(getattr(g_se, name) / abs(dp_du))
+    return out, se
 
 
 def gradient_check(problem, p, cfg, label):
     """Predicted Δ log-MSE (soft gradient × step) vs the exact pipeline's difference."""
-    g_score = soft_gradient(problem, p, cfg["grad_keys"], score=True)
-    g_path = soft_gradient(problem, p, cfg["grad_keys"], score=False)
+    g_score, se_score = soft_gradient(problem, p, cfg["grad_keys"], score=True)
+    g_path, se_path = soft_gradient(problem, p, cfg["grad_keys"], score=False)
     rows = {}
     for name in NAMES:
         f = FD_FACTOR[name]
@@ -168,14 +184,17 @@ def gradient_check(problem, p, cfg, label):
             "step": [lo, hi],
             "exact_delta": e_hi - e_lo,
             "predicted_delta": g_score[name] * (hi - lo),
+            "predicted_se": se_score[name] * (hi - lo),
             "pathwise_delta": g_path[name] * (hi - lo),
+            "pathwise_se": se_path[name] * (hi - lo),
         }
         r = rows[name]
         agree = np.sign(r["exact_delta"]) == np.sign(r["predicted_delta"])
         print(
             f"[grad check @ {label}] {name:16s} exact Δ {r['exact_delta']:+.4f}  "
-            f"design-gradient Δ {r['predicted_delta']:+.4f}  "
-            f"pathwise Δ {r['pathwise_delta']:+.4f}  sign {'ok' if agree else 'DIFFERS'}",
+            f"design-gradient Δ {r['predicted_delta']:+.4f} ± {r['predicted_se']:.4f}  "
+            f"pathwise Δ {r['pathwise_delta']:+.4f} ± {r['pathwise_se']:.4f}  "
+            f"sign {'ok' if agree else 'DIFFERS'}",
             flush=True,
         )
     return rows
@@ -195,7 +214,7 @@ def curves(p_opt, p_def, cfg):
         for v in vals:
             q = replace(p_opt, **{name: v})
             q = fit_geometry(q) if name == "fwhm_nm" else q
-            r = held_out(q, cfg, seeds=cfg["seeds"][:1])
+            r = held_out(q, cfg)
             r["value"] = v
             out[name].append(r)
             print(
@@ -207,7 +226,7 @@ def curves(p_opt, p_def, cfg):
     base = replace(p_def, sweep_rate_hz=float(p_opt.sweep_rate_hz))
     out["bandwidth_default_optics"] = []
     for v in cfg["C_grid"]:
-        r = held_out(replace(base, threshold=v), cfg, seeds=cfg["seeds"][:1])
+        r = held_out(replace(base, threshold=v), cfg)
         r["value"] = v
         out["bandwidth_default_optics"].append(r)
         print(
@@ -218,21 +237,36 @@ def curves(p_opt, p_def, cfg):
     return out
 
 
-def figure(result, traj, cur, checks):
+def figure(result, trajs, cur, checks):
     plt = pyplot()
+    import matplotlib.ticker  # noqa: F401  (after pyplot() chose the backend)
+
     fig, ax = plt.subplots(2, 3, figsize=(15, 8.5))
     a = ax[0, 0]
-    steps = [r["step"] for r in traj]
-    a.plot(steps, [r["psnr_db"] for r in traj], label="training PSNR (design loss)")
-    a.set_xlabel("Adam step")
-    a.set_ylabel("PSNR, dB")
     a2 = a.twinx()
-    a2.plot(steps, [r["event_rate_ev_s"] / 1e6 for r in traj], "C1", label="event rate")
-    a2.axhline(LIMITS.max_event_rate_ev_s / 1e6, color="C1", ls=":", lw=1)
+    for i, (label, traj) in enumerate(trajs.items()):
+        steps = [r["step"] for r in traj]
+        a.plot(
+            steps,
+            [r["psnr_db"] for r in traj],
+            f"C{2 * i}",
+            lw=0.8,
+            label=f"training PSNR, start {label}",
+        )
+        a2.plot(
+            steps,
+            [r["event_rate_ev_s"] / 1e6 for r in traj],
+            f"C{2 * i + 1}",
+            ls="--",
+            lw=0.8,
+        )
+    a.set_xlabel("Adam step")
+    a.set_ylabel("PSNR, dB (one jitter draw per step)")
+    a2.axhline(LIMITS.max_event_rate_ev_s / 1e6, color="k", ls=":", lw=1)
     a2.set_yscale("log")
     a2.set_ylabel("event rate, Mev/s (full sensor)")
-    a.set_title("(a) optimiser trajectory")
-    a.legend(loc="lower right", fontsize=8)
+    a.set_title("(a) optimiser trajectories (dashed: event rate)")
+    a.legend(loc="lower right", fontsize=7)
     opt, dflt = result["optimum"], result["default"]
     labels = {
         "fwhm_nm": ("(b) error vs FWHM", "FWHM, nm"),
@@ -253,7 +287,13 @@ def figure(result, traj, cur, checks):
                 mfc="k" if r["feasible"] else "w",
             )
         axi.plot(opt["params"][name], opt["psnr_db"], "r*", ms=14, label="optimum")
-        axi.plot(dflt["params"][name], dflt["psnr_db"], "bs", ms=8, label="default")
+        axi.plot(
+            dflt["params"][name],
+            dflt["psnr_db"],
+            "bs",
+            ms=8,
+            label="paper default (30/s, infeasible)",
+        )
         axi.set_title(labels[name][0])
         axi.set_xlabel(labels[name][1])
         axi.set_ylabel("held-out PSNR, dB (open: infeasible)")
@@ -277,6 +317,8 @@ def figure(result, traj, cur, checks):
     a.plot(dflt["event_rate_ev_s"] / 1e6, dflt["psnr_db"], "bs", ms=8, label="default")
     a.axvline(LIMITS.max_event_rate_ev_s / 1e6, color="k", ls=":", lw=1)
     a.set_xscale("log")
+    a.xaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
+    a.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     a.set_xlabel("event rate, Mev/s (1280×720 at the design's sweep rate)")
     a.set_ylabel("held-out PSNR, dB")
     a.set_title("(e) error vs bandwidth")
@@ -305,11 +347,82 @@ def figure(result, traj, cur, checks):
     return fig
 
 
+def equal_rate(points, rate):
+    """PSNR and SAM of a C sweep interpolated (linear in log event rate) at `rate`;
+    None outside the swept range."""
+    pts = sorted(points, key=lambda r: r["event_rate_ev_s"])
+    x = np.log([r["event_rate_ev_s"] for r in pts])
+    if not x[0] <= np.log(rate) <= x[-1]:
+        return None
+    return {
+        k: float(np.interp(np.log(rate), x, [r[k] for r in pts]))
+        for k in ("psnr_db", "sam_deg")
+    }
+
+
+def report(path):
+    """Print the result table (markdown) from a finished run's JSON."""
+    import json
+
+    d = json.loads(Path(path).read_text())
+    val, cur = d["held_out"], d["curves"]
+    opt = val["optimum"]
+    rows = [
+        ("paper default (30 sweeps/s)", val["default"]),
+        ("paper optics at 3 sweeps/s, C 0.15", val["default_at_required_rate"]),
+        ("gradient optimum", opt),
+    ]
+    print(
+        "| design | FWHM nm | β nm/rad | c | C | sweeps/s | events/px | Mev/s "
+        "| feasible | SAM° | PSNR dB |\n|---|---:|---:|---:|---:|---:|---:|---:|:-:|---:|---:|"
+    )
+    for label, r in rows:
+        p = r["params"]
+        print(
+            f"| {label} | {p['fwhm_nm']:.1f} | {p['beta_nm_per_rad']:.0f} | "
+            f"{p['baseline_rel']:.3f} | {p['threshold']:.3f} | {p['sweep_rate_hz']:.2f} | "
+            f"{r['events_per_pixel']:.1f} | {r['event_rate_ev_s'] / 1e6:.0f} | "
+            f"{'yes' if r['feasible'] else 'no'} | {r['sam_deg']:.2f} | {r['psnr_db']:.2f} |"
+        )
+    eq = equal_rate(cur["bandwidth_default_optics"], opt["event_rate_ev_s"])
+    if eq is not None:
+        print(
+            f"| paper optics at 3 sweeps/s, C raised to the optimum's "
+            f"{opt['event_rate_ev_s'] / 1e6:.0f} Mev/s (interpolated on the C sweep) "
+            f"| 17.5 | 185 | 0.030 | – | 3.00 | – | "
+            f"{opt['event_rate_ev_s'] / 1e6:.0f} | yes | {eq['sam_deg']:.2f} | "
+            f"{eq['psnr_db']:.2f} |"
+        )
+    print(
+        "\n| point | parameter | exact Δ log-MSE | design gradient Δ (± s.e.) "
+        "| pathwise Δ (± s.e.) |"
+    )
+    print("|---|---|---:|---:|---:|")
+    for label, rows_ in d["gradient_check"].items():
+        for name, r in rows_.items():
+            same = np.sign(r["exact_delta"]) == np.sign(r["predicted_delta"])
+            print(
+                f"| {label} | {name} | {r['exact_delta']:+.3f} | "
+                f"{r['predicted_delta']:+.3f} ± {r.get('predicted_se', float('nan')):.3f}"
+                f"{'' if same else ' (sign differs)'} | "
+                f"{r['pathwise_delta']:+.3f} ± {r.get('pathwise_se', float('nan')):.3f} |"
+            )
+    print(f"wall time (s): {d['seconds']}")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="tiny sizes (smoke test)")
     ap.add_argument("--steps", type=int, default=None, help="Adam steps")
+    ap.add_argument(
+        "--report",
+        metavar="JSON",
+        help="only print the result table of a finished run (results/design_study.json)",
+    )
     args = ap.parse_args(argv)
+    if args.report:
+        report(args.report)
+        return
     t_start = time.perf_counter()
     if args.quick:
         cfg = dict(
@@ -317,7 +430,9 @@ def main(argv=None):
             gains=(1.0,),
             steps=3,
             lr=0.1,
+            final_lr=0.02,
             average=2,
+            select_keys=2,
             held_size=(8, 12),
             seeds=(0,),
             train_rows=1,
@@ -331,13 +446,15 @@ def main(argv=None):
         cfg = dict(
             spectra=12,
             gains=(1.0, 0.64),
-            steps=40,
-            lr=0.1,
-            average=10,
+            steps=250,
+            lr=0.05,
+            final_lr=0.01,
+            average=30,
+            select_keys=16,
             held_size=(16, 24),
             seeds=(0, 1),
             train_rows=2,
-            grad_keys=4,
+            grad_keys=32,
             fwhm_grid=(8.0, 12.0, 17.5, 25.0, 35.0),
             c_grid=(0.01, 0.02, 0.03, 0.06, 0.12),
             C_grid=(0.08, 0.11, 0.15, 0.2, 0.27, 0.36),
@@ -355,25 +472,43 @@ def main(argv=None):
         flush=True,
     )
 
-    # 1. optimise
-    res = ev.optimise_design(
-        problem,
-        p_def,
-        steps=cfg["steps"],
-        learning_rate=cfg["lr"],
-        average=cfg["average"],
-        print_every=5,
-        key=jr.key(0),
-    )
-    p_opt = res.params
+    # 1. optimise from two starts; keep the end point with the lower averaged loss
+    p_def_req = replace(p_def, sweep_rate_hz=SPACE.sweep_rate_hz[0])
+    starts = {"paper_default": p_def, "paper_optics_at_3Hz": p_def_req}
+    runs, selection = {}, {}
     OUT.mkdir(exist_ok=True)
-    ev.save_trajectory(OUT / f"{name}_trajectory.json", res, config=cfg)
-    t_opt = res.seconds
-    print(f"optimum {p_opt.as_dict()} after {t_opt:.0f} s", flush=True)
+    for label, p0 in starts.items():
+        print(f"--- start: {label}", flush=True)
+        runs[label] = ev.optimise_design(
+            problem,
+            p0,
+            steps=cfg["steps"],
+            learning_rate=cfg["lr"],
+            final_learning_rate=cfg["final_lr"],
+            average=cfg["average"],
+            print_every=10,
+            key=jr.key(0),
+        )
+        ev.save_trajectory(
+            OUT / f"{name}_trajectory_{label}.json", runs[label], config=cfg
+        )
+    for label, p in [(k, r.params) for k, r in runs.items()] + [
+        ("start_" + k, p) for k, p in starts.items()
+    ]:
+        mean, se = crn_loss(problem, p, cfg["select_keys"])
+        selection[label] = {"loss": mean, "se": se, "params": p.as_dict()}
+        print(f"[select] {label:28s} loss {mean:9.4f} ± {se:.4f}", flush=True)
+    best = min(runs, key=lambda k: selection[k]["loss"])
+    res = runs[best]
+    # The quadratic penalty leaves a limit slightly violated at most; the exact
+    # simulator refuses a sweep that does not cover the channels, so the end point is
+    # moved onto the geometry (λ0 lowered / β raised just enough, see fit_geometry).
+    p_opt = fit_geometry(res.params)
+    t_opt = sum(r.seconds for r in runs.values())
+    print(f"optimum (from {best}) {p_opt.as_dict()} after {t_opt:.0f} s", flush=True)
 
     # 2. held-out validation
     t0 = time.perf_counter()
-    p_def_req = replace(p_def, sweep_rate_hz=SPACE.sweep_rate_hz[0])
     val = {
         "default": held_out(p_def, cfg),
         "default_at_required_rate": held_out(p_def_req, cfg),
@@ -410,8 +545,10 @@ def main(argv=None):
         "held_out": val,
         "gradient_check": checks,
         "curves": cur,
-        "trajectory_file": f"{name}_trajectory.json",
-        "trajectory_last": res.trajectory[-1],
+        "selection": selection,
+        "optimum_from": best,
+        "trajectory_files": {k: f"{name}_trajectory_{k}.json" for k in runs},
+        "trajectory_last": {k: r.trajectory[-1] for k, r in runs.items()},
         "seconds": {
             "optimise": t_opt,
             "validate": t_val,
@@ -423,7 +560,7 @@ def main(argv=None):
     }
     fig = figure(
         {"optimum": val["optimum"], "default": val["default"]},
-        res.trajectory,
+        {k: r.trajectory for k, r in runs.items()},
         cur,
         checks,
     )
