@@ -410,6 +410,28 @@ def report(path):
     print(f"wall time (s): {d['seconds']}")
 
 
+def sweep_scan(path, rates=(2.4, 2.6, 2.8, 3.0, 3.2, 3.4, 3.6, 3.75), seeds=(0, 1, 2)):
+    """Exact-pipeline training log-MSE at the run's optimum against the sweep rate, per
+    sensor seed: is the finite difference of the gradient check smooth or a jump?"""
+    import json
+
+    d = json.loads(Path(path).read_text())
+    cfg = {k: tuple(v) if isinstance(v, list) else v for k, v in d["config"].items()}
+    p = ev.DesignParams.from_dict(d["held_out"]["optimum"]["params"])
+    print("| sweeps/s | " + " | ".join(f"seed {s}" for s in seeds) + " | mean |")
+    print("|---:|" + "---:|" * (len(seeds) + 1))
+    for f in rates:
+        vals = [
+            training_exact(replace(p, sweep_rate_hz=f), cfg, seed=s)[0] for s in seeds
+        ]
+        print(
+            f"| {f:.2f} | "
+            + " | ".join(f"{v:.3f}" for v in vals)
+            + f" | {np.mean(vals):.3f} |",
+            flush=True,
+        )
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="tiny sizes (smoke test)")
@@ -419,7 +441,16 @@ def main(argv=None):
         metavar="JSON",
         help="only print the result table of a finished run (results/design_study.json)",
     )
+    ap.add_argument(
+        "--sweep-scan",
+        metavar="JSON",
+        help="only scan the exact training error against the sweep rate at a finished "
+        "run's optimum (~1 min)",
+    )
     args = ap.parse_args(argv)
+    if args.sweep_scan:
+        sweep_scan(args.sweep_scan)
+        return
     if args.report:
         report(args.report)
         return
