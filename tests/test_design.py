@@ -105,6 +105,30 @@ def test_design_gradient_finite_on_box_edges(corner):
     assert np.isfinite(float(aux["log_mse"]))
 
 
+@functools.cache
+def _problem32():
+    """The float32 problem: the dtype the optimiser runs in by default. (The float32
+    Cholesky failure once seen in a design run is tested directly in test_solvers.)"""
+    return ev.design_problem(spectra_limit=3, gains=(1.0, 0.64), space=SPACE)
+
+
+def test_design_loss_finite_at_random_points_float32():
+    """Production path (float32, likelihood-ratio estimator for C and c, jitter):
+    loss and gradient finite at random points spread over the whole box, including
+    few-event designs (high C and c)."""
+    problem = _problem32()
+    vag = _vag(True)
+    rng = np.random.default_rng(7)
+    for i in range(6):
+        u = ev.DesignParams(*rng.normal(0.0, 2.0, len(NAMES)))
+        loss, grad, aux = vag(problem, u, jr.key(i))
+        assert loss.dtype == jnp.float32
+        g = np.array([float(getattr(grad, k)) for k in NAMES])
+        p = problem.space.from_unconstrained(u).as_dict()
+        assert np.isfinite(float(loss)) and np.all(np.isfinite(g)), (p, g)
+        assert np.isfinite(float(aux["log_mse"])), p
+
+
 def test_penalties_switch_on():
     """Each hardware limit gives a positive constraint value and penalty once broken,
     and none inside."""
