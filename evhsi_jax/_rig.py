@@ -21,6 +21,7 @@ and the reconstruction models it either way).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -158,7 +159,8 @@ class Rig(eqx.Module):
     """Parameters of the whole capture system (the paper's simulated rig by default).
 
     Build with `Rig.from_dict({...})` / `Rig.load(path)` (validated, any key optional)
-    or `Rig()` for the defaults; update leaves with `eqx.tree_at`.
+    or `Rig()` for the defaults; replace array leaves with :meth:`with_leaves`
+    (differentiable) and static fields with :meth:`replace_static`.
     """
 
     fwhm_nm: Float[Array, ""]
@@ -226,6 +228,30 @@ class Rig(eqx.Module):
         self.noise_rate_hz = cfg["noise_rate_hz"]
         self.seed = cfg["seed"]
         self.reset_mode = cfg["reset_mode"]
+
+    def with_leaves(self, **values) -> Rig:
+        """A copy with array leaves replaced by name, e.g.
+        `rig.with_leaves(fwhm_nm=x, threshold_on=c, threshold_off=c)`.
+
+        Differentiable (`eqx.tree_at`): gradients flow into the new values, which is how
+        the calibration and design code put traced parameters into a rig. Values keep
+        their own dtype; unknown or static names raise.
+        """
+        if not values:
+            return self
+        leaves = {
+            f.name for f in dataclasses.fields(self) if not f.metadata.get("static")
+        }
+        bad = sorted(set(values) - leaves)
+        if bad:
+            raise AttributeError(f"not array leaves of Rig: {bad}")
+        names = tuple(values)
+        return eqx.tree_at(
+            lambda r: tuple(getattr(r, k) for k in names),
+            self,
+            tuple(values[k] for k in names),
+            is_leaf=lambda x: x is None,
+        )
 
     def replace_static(self, **fields) -> Rig:
         """A copy with static fields replaced (e.g. `channel_gain`), unvalidated."""

@@ -183,15 +183,6 @@ PARAMS = [
 ]
 
 
-def _with(rig, params):
-    names = tuple(params)
-    return eqx.tree_at(
-        lambda r: tuple(getattr(r, k) for k in names),
-        rig,
-        tuple(params[k] for k in names),
-    )
-
-
 @pytest.fixture(scope="module")
 def intensity_gradients():
     """Gradient and central differences of a weighted log-intensity sum, float64."""
@@ -204,7 +195,7 @@ def intensity_gradients():
 
         @jax.jit
         def f(params):
-            r = _with(rig, params)
+            r = rig.with_leaves(**params)
             table = band_table(r, fwhm_bound_nm=25.0)
             a = column_time_table(r, table, t, r.column_offsets_us[0])
             inten = a @ spectrum + r.baseline_rel

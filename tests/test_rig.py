@@ -243,3 +243,21 @@ def test_load_bad_files(tmp_path, text, match):
 def test_load_missing_file(tmp_path):
     with pytest.raises(ValueError, match="not found"):
         Rig.load(tmp_path / "absent.json")
+
+
+def test_with_leaves_replaces_by_name_and_is_differentiable():
+    rig = Rig()
+    r2 = rig.with_leaves(fwhm_nm=jnp.asarray(20.0), threshold_on=jnp.asarray(0.2))
+    assert float(r2.fwhm_nm) == 20.0 and float(r2.threshold_on) == pytest.approx(0.2)
+    assert float(r2.threshold_off) == float(rig.threshold_off)  # untouched
+    assert float(rig.fwhm_nm) == pytest.approx(17.5)  # original unchanged
+    g = jax.grad(lambda x: rig.with_leaves(beta_nm_per_rad=x).beta_nm_per_rad ** 2)(3.0)
+    assert float(g) == pytest.approx(6.0)
+    # None leaves (no stored column offsets) can be filled.
+    assert rig.with_leaves(column_offsets_us=jnp.zeros(4)).column_offsets_us.shape == (
+        4,
+    )
+    with pytest.raises(AttributeError, match="grid"):
+        rig.with_leaves(grid=None)  # static field
+    with pytest.raises(AttributeError, match="nope"):
+        rig.with_leaves(nope=1.0)

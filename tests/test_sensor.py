@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import functools
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -332,19 +331,10 @@ GRAD_PARAMS = [
 ]
 
 
-def _with(rig, params):
-    names = tuple(params)
-    return eqx.tree_at(
-        lambda r: tuple(getattr(r, k) for k in names),
-        rig,
-        tuple(params[k] for k in names),
-    )
-
-
 def soft_loss(params, rig, spectra, temperature):
     """A smooth summary of the expected events of a few pixels of one column: the
     count-weighted mean time of ON minus OFF events plus the ON count."""
-    r = _with(rig, params)
+    r = rig.with_leaves(**params)
     t = sweep_times_us(r)
     table = band_table(r, fwhm_bound_nm=30.0)
     a = column_time_table(r, table, t, r.column_offsets_us[0])

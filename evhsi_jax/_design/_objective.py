@@ -251,10 +251,8 @@ def design_loss(
     offsets = rig.column_offsets(scfg.width)[problem.columns]
 
     def one(trace_col, log_col, st, tc, pl, mk, off, thr_1, c_1):
-        rig_p = eqx.tree_at(
-            lambda r: (r.threshold_on, r.threshold_off, r.baseline_rel),
-            rig,
-            (thr_1, thr_1, c_1),
+        rig_p = rig.with_leaves(
+            threshold_on=thr_1, threshold_off=thr_1, baseline_rel=c_1
         )
         return pixel_qp(
             rig_p,

@@ -110,18 +110,14 @@ class DesignParams(eqx.Module):
         dtype = base.fwhm_nm.dtype
         vals = tuple(jnp.asarray(getattr(self, k), dtype) for k in PARAM_NAMES)
         fwhm, beta, start, c, thr, rate = vals
-        return eqx.tree_at(
-            lambda r: (
-                r.fwhm_nm,
-                r.beta_nm_per_rad,
-                r.sweep_start_nm,
-                r.baseline_rel,
-                r.threshold_on,
-                r.threshold_off,
-                r.sweep_rate_hz,
-            ),
-            base,
-            (fwhm, beta, start, c, thr, thr, rate),
+        return base.with_leaves(
+            fwhm_nm=fwhm,
+            beta_nm_per_rad=beta,
+            sweep_start_nm=start,
+            baseline_rel=c,
+            threshold_on=thr,
+            threshold_off=thr,
+            sweep_rate_hz=rate,
         )
 
     def as_dict(self) -> dict[str, float]:
