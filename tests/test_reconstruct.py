@@ -216,8 +216,11 @@ def test_reconstruction_gradients_match_finite_differences():
         for name in ("beta_nm_per_rad", "threshold_on", "baseline_rel", "fwhm_nm"):
             v = float(getattr(rig, name))
             h = 1e-6 * max(abs(v), 1.0)
+
             def at(val, name=name):
-                return loss(eqx.tree_at(lambda r: getattr(r, name), rig, jnp.asarray(val)))
+                return loss(
+                    eqx.tree_at(lambda r: getattr(r, name), rig, jnp.asarray(val))
+                )
 
             fd = (at(v + h) - at(v - h)) / (2 * h)
             g = float(getattr(grad, name))
@@ -237,3 +240,34 @@ def test_threshold_map_shape_is_checked(capture):
     rig, _, events, _ = capture
     with pytest.raises(ValueError, match="shape"):
         ev.reconstruct(events, rig, threshold_on_map=np.full((3, 3), 0.15))
+
+
+def test_failed_batched_solves_are_resolved_exactly(
+    capture, cube_known_thresholds, monkeypatch
+):
+    """A pixel whose batched solve comes out non-finite (a float32 Cholesky failure on
+    a rounding-indefinite system) is re-solved one by one with the shifted-retry
+    factorisation, not replaced by the flat no-event answer."""
+    from evhsi_jax._reconstruct import _pipeline
+
+    rig, _, events, info = capture
+    ref, ref_info = cube_known_thresholds
+    real = _pipeline._solve_chunk
+
+    def failing(*a, **k):
+        x, kkt = real(*a, **k)
+        x = np.array(x)
+        x[[0, 5]] = np.nan  # two pixels of every chunk "fail"
+        return jnp.asarray(x), kkt
+
+    monkeypatch.setattr(_pipeline, "_solve_chunk", failing)
+    cube, got = ev.reconstruct(
+        events,
+        rig,
+        threshold_on_map=info.threshold_on,
+        threshold_off_map=info.threshold_off,
+        return_info=True,
+    )
+    assert np.all(np.isfinite(cube)) and np.all(np.isfinite(got.kkt[got.solved]))
+    np.testing.assert_allclose(cube, ref, atol=1e-4)
+    assert np.max(got.kkt[got.solved]) < 1e-4

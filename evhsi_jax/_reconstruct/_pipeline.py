@@ -143,6 +143,40 @@ def _solve_chunk(
     return x.reshape(n, -1), kkt.reshape(n)
 
 
+@eqx.filter_jit
+def _solve_robust(
+    rig,
+    table,
+    cfg: ProblemConfig,
+    iters: int,
+    t_us,
+    polarity,
+    mask,
+    offsets,
+    thr_on,
+    thr_off,
+    phase,
+    sweeps: int,
+):
+    """The exact active-set solution pixel by pixel (`lax.map`), with Cholesky
+    factorisations retried under a rounding-level shift where they fail
+    (:func:`._solvers.cho_factor`). For the rare pixels whose batched solve came out
+    non-finite: float32 systems that are indefinite by rounding (few events, weak
+    priors). Same arguments as :func:`_solve_chunk`, minus the solver and sub-batch."""
+
+    def one(args):
+        t, p, mk, off, con, coff, ph = args
+        q_mat, q_vec = pixel_system(
+            rig, table, cfg, t, p, mk, off, con, coff, ph, sweeps
+        )[:2]
+        x = _solvers.active_set(q_mat, q_vec, iters=iters, robust=True)
+        return x, _solvers.kkt_residual(q_mat, q_vec, x)
+
+    n = t_us.shape[0]
+    phase = jnp.broadcast_to(jnp.asarray(phase, t_us.dtype), (n,))
+    return jax.lax.map(one, (t_us, polarity, mask, offsets, thr_on, thr_off, phase))
+
+
 def _augmented_gram(rig, table, cfg, t, p, mk, off, con, coff, phase, sweeps):
     """$\\hat N^T \\hat N$ of the event rows alone (the paper's SVD system)."""
     bare = dataclasses.replace(cfg, alpha_int=0.0, alpha_spec=0.0, ridge=0.0)
@@ -199,7 +233,11 @@ def reconstruct(
       Several CPU devices solve one pixel per sub-batch (see
       `evhsi_jax._shard.sub_batch_for`).
 
-    **Returns:** the cube `(H, W, M)` float32 (and the info if asked).
+    **Returns:** the cube `(H, W, M)` float32 (and the info if asked). Never NaN: a
+    pixel whose batched solve is non-finite (float32 rounding on a nearly singular
+    system) is re-solved alone by the exact active-set method with shifted-retry
+    factorisations; one still non-finite after that (or from `svd`/`unconstrained`)
+    gets the no-event answer and KKT = inf.
     """
     spec = solver_spec(solver)
     cfg = config or ProblemConfig()
@@ -254,12 +292,7 @@ def reconstruct(
         pix = np.where(valid, b.pixel, 0)
         # Carried references: shift each pixel's clock to start at its reference.
         d = np.where(valid, lead[pix], 0.0)
-        x, kkt = solve(
-            rig,
-            table,
-            cfg,
-            spec,
-            sub,
+        args = (
             jnp.asarray(np.where(b.mask, b.t_us + d[:, None], 0.0), dtype),
             jnp.asarray(b.polarity, jnp.int32),
             jnp.asarray(b.mask),
@@ -267,15 +300,25 @@ def reconstruct(
             jnp.asarray(thr_on[pix], dtype),
             jnp.asarray(thr_off[pix], dtype),
             jnp.asarray(-d, dtype),
-            sweeps,
         )
-        x = np.asarray(x)
+        x, kkt = solve(rig, table, cfg, spec, sub, *args, sweeps)
+        x, kkt = np.array(x), np.array(kkt)
+        failed = valid & ~np.all(np.isfinite(x), axis=1)
+        if failed.any() and spec.name not in ("svd", "unconstrained"):
+            # Rare: re-solve the chunk's failed pixels exactly, one by one.
+            idx = np.flatnonzero(failed)
+            n_pad = 1 << int(math.ceil(math.log2(idx.size)))  # few compiled sizes
+            sel = np.concatenate([idx, np.full(n_pad - idx.size, idx[0])])
+            xr, kr = _solve_robust(
+                rig, table, cfg, max(spec.iters, 48), *(a[sel] for a in args), sweeps
+            )
+            x[idx], kkt[idx] = np.asarray(xr)[: idx.size], np.asarray(kr)[: idx.size]
         cube[b.pixel[valid]] = x[valid]
-        kkt_all[b.pixel[valid]] = np.asarray(kkt)[valid]
+        kkt_all[b.pixel[valid]] = kkt[valid]
         bar.update(int(valid.sum()))
     bar.close()
     bad = ~np.isfinite(cube)
-    if bad.any():  # never hand out NaN: fall back to the no-event answer, flagged
+    if bad.any():  # never hand out NaN: the no-event answer, flagged (kkt = inf)
         cube[bad] = _no_event_answer(rig, m)
         kkt_all[np.any(bad, axis=1)] = np.inf
     if rig.channel_gain is not None:  # white-reference response correction
