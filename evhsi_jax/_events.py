@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -157,6 +158,20 @@ class EventStream:
             p=self.p[index],
             t_us=self.t_us[index],
         )
+
+    def split(self, n: int) -> Iterator[EventStream]:
+        """Consecutive parts of at most `n` events (at least one part, empty for an
+        empty stream); the triggers go with the first part only."""
+        for i in range(0, max(len(self), 1), max(1, n)):
+            part = self.take(slice(i, i + n))
+            if i:
+                part = dataclasses.replace(
+                    part,
+                    trigger_t_us=part.trigger_t_us[:0],
+                    trigger_p=part.trigger_p[:0],
+                    trigger_id=part.trigger_id[:0],
+                )
+            yield part
 
     def time_window(self, t0_us: int, t1_us: int) -> EventStream:
         """Events and triggers with `t0_us <= t_us < t1_us` (stream must be ordered)."""

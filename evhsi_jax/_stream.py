@@ -350,17 +350,7 @@ def _finished_sweeps(out_dir: Path, fp: str, *, overwrite: bool) -> dict[int, di
 # --- the run -------------------------------------------------------------------------
 def _chunks_of(source, chunk_bytes):
     if isinstance(source, EventStream):
-        n = max(1, chunk_bytes // 2)
-        for i in range(0, max(len(source), 1), n):
-            part = source.take(slice(i, i + n))
-            if i:
-                part = dataclasses.replace(
-                    part,
-                    trigger_t_us=part.trigger_t_us[:0],
-                    trigger_p=part.trigger_p[:0],
-                    trigger_id=part.trigger_id[:0],
-                )
-            yield part
+        yield from source.split(max(1, chunk_bytes // 2))
         return
     yield from iter_events(source, chunk_bytes=chunk_bytes)
 

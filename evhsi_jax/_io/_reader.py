@@ -235,20 +235,9 @@ class EventReader:
     def __iter__(self) -> Iterator[EventStream]:
         """Chunks of the file in order, each an `EventStream` (empty chunks skipped)."""
         if self._npz is not None:
-            n = max(1, self.chunk_bytes // 2)
-            ev = self._npz
-            for i in range(0, len(ev), n):
-                part = ev.take(slice(i, i + n))
-                if i:
-                    part = dataclasses.replace(
-                        part,
-                        trigger_t_us=part.trigger_t_us[:0],
-                        trigger_p=part.trigger_p[:0],
-                        trigger_id=part.trigger_id[:0],
-                    )
-                yield part
-            if not len(ev) and ev.trigger_t_us.size:
-                yield ev
+            for part in self._npz.split(max(1, self.chunk_bytes // 2)):
+                if len(part) or part.trigger_t_us.size:
+                    yield part
             return
         self.report = DecodeReport()
         for *_, c in self._decoded(self.data_offset, self._new_state(), self.report):
