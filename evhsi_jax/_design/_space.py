@@ -53,6 +53,10 @@ PARAM_NAMES = (
 _LOG_SCALE = {"baseline_rel", "threshold", "sweep_rate_hz"}
 
 
+def _scalar(v):
+    return jnp.asarray(v, dtype=float)
+
+
 class DesignParams(eqx.Module):
     """One design, six scalars in physical units (a pytree: differentiate through it).
 
@@ -64,34 +68,12 @@ class DesignParams(eqx.Module):
     - `sweep_rate_hz`: sweeps per second.
     """
 
-    fwhm_nm: Float[Array, ""]
-    beta_nm_per_rad: Float[Array, ""]
-    sweep_start_nm: Float[Array, ""]
-    baseline_rel: Float[Array, ""]
-    threshold: Float[Array, ""]
-    sweep_rate_hz: Float[Array, ""]
-
-    def __init__(
-        self,
-        fwhm_nm,
-        beta_nm_per_rad,
-        sweep_start_nm,
-        baseline_rel,
-        threshold,
-        sweep_rate_hz,
-    ):
-        for name, v in zip(
-            PARAM_NAMES,
-            (
-                fwhm_nm,
-                beta_nm_per_rad,
-                sweep_start_nm,
-                baseline_rel,
-                threshold,
-                sweep_rate_hz,
-            ),
-        ):
-            setattr(self, name, jnp.asarray(v, dtype=float))
+    fwhm_nm: Float[Array, ""] = eqx.field(converter=_scalar)
+    beta_nm_per_rad: Float[Array, ""] = eqx.field(converter=_scalar)
+    sweep_start_nm: Float[Array, ""] = eqx.field(converter=_scalar)
+    baseline_rel: Float[Array, ""] = eqx.field(converter=_scalar)
+    threshold: Float[Array, ""] = eqx.field(converter=_scalar)
+    sweep_rate_hz: Float[Array, ""] = eqx.field(converter=_scalar)
 
     @classmethod
     def from_rig(cls, rig: Rig) -> DesignParams:
