@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import json
 import sys
 import time
 from pathlib import Path
@@ -83,7 +84,7 @@ def fit_geometry(p: ev.DesignParams, fwhm_nm: float | None = None) -> ev.DesignP
     return replace(p, fwhm_nm=f, sweep_start_nm=start, beta_nm_per_rad=beta)
 
 
-def held_out(p, cfg, seeds=None):
+def held_out(p, cfg):
     """Exact simulate + reconstruct on the ColorChecker, averaged over seeds."""
     rows = [
         ev.evaluate_design(
@@ -95,7 +96,7 @@ def held_out(p, cfg, seeds=None):
             seed=s,
             threshold_spread=SPREAD,
         )
-        for s in (seeds or cfg["seeds"])
+        for s in cfg["seeds"]
     ]
     out = {
         k: float(np.mean([r[k] for r in rows]))
@@ -362,8 +363,6 @@ def equal_rate(points, rate):
 
 def report(path):
     """Print the result table (markdown) from a finished run's JSON."""
-    import json
-
     d = json.loads(Path(path).read_text())
     val, cur = d["held_out"], d["curves"]
     opt = val["optimum"]
@@ -414,8 +413,6 @@ def sweep_scan(path, rates=(2.4, 2.6, 2.8, 3.0, 3.2, 3.4, 3.6, 3.75), seeds=(0, 
     """Exact-pipeline training log-MSE at the run's optimum against the sweep rate, per
     sensor seed (is the finite difference of the gradient check smooth or a jump?),
     and for seed 0 with a 1 µs instead of 50 µs refractory period."""
-    import json
-
     d = json.loads(Path(path).read_text())
     cfg = {k: tuple(v) if isinstance(v, list) else v for k, v in d["config"].items()}
     p = ev.DesignParams.from_dict(d["held_out"]["optimum"]["params"])
