@@ -302,10 +302,11 @@ def reconstruct(
             jnp.asarray(-d, dtype),
         )
         x, kkt = solve(rig, table, cfg, spec, sub, *args, sweeps)
-        x, kkt = np.array(x), np.array(kkt)
+        x, kkt = np.asarray(x), np.asarray(kkt)
         failed = valid & ~np.all(np.isfinite(x), axis=1)
         if failed.any() and spec.name not in ("svd", "unconstrained"):
             # Rare: re-solve the chunk's failed pixels exactly, one by one.
+            x, kkt = x.copy(), kkt.copy()  # device buffers are read-only
             idx = np.flatnonzero(failed)
             n_pad = 1 << int(math.ceil(math.log2(idx.size)))  # few compiled sizes
             sel = np.concatenate([idx, np.full(n_pad - idx.size, idx[0])])
