@@ -108,7 +108,30 @@ def band_table(rig: Rig, *, fwhm_bound_nm: float | None = None) -> BandTable:
     n = int(np.ceil((hi - lo) / TABLE_STEP_NM)) + 1
     centres = lo + TABLE_STEP_NM * jnp.arange(n, dtype=rig.fwhm_nm.dtype)
     edges = jnp.asarray(rig.grid.fine_edges_nm, dtype=rig.fwhm_nm.dtype)
-    sigma = fwhm_to_sigma(rig.fwhm_nm)
+    if rig.band_profile is not None:
+        overlap = _profile_overlap(rig.band_profile, edges, centres)
+    else:
+        overlap = _gaussian_overlap(rig.fwhm_nm, edges, centres)
+    weight = rig.camera_response * rig.lamp
+    raw = overlap * weight[None, :]
+    gain = 1.0 / jnp.max(jnp.sum(raw, axis=1))
+    return BandTable(raw * gain, lo, TABLE_STEP_NM)
+
+
+def _profile_overlap(profile, edges, centres):
+    """∫ T(λ - λc) dλ over each sub-bin for a sampled profile T (piecewise linear):
+    differences of its cumulative integral G, $G(e_{f+1} - λ_c) - G(e_f - λ_c)$."""
+    off = np.asarray(profile[0], np.float64)
+    val = np.asarray(profile[1], np.float64)
+    cum = np.concatenate([[0.0], np.cumsum(0.5 * (val[1:] + val[:-1]) * np.diff(off))])
+    off_j = jnp.asarray(off, centres.dtype)
+    cum_j = jnp.asarray(cum, centres.dtype)
+    g = jnp.interp(edges[None, :] - centres[:, None], off_j, cum_j)
+    return g[:, 1:] - g[:, :-1]
+
+
+def _gaussian_overlap(fwhm_nm, edges, centres):
+    sigma = fwhm_to_sigma(fwhm_nm)
     # ∫ exp(-(λ-λc)²/2σ²) dλ over [e_f, e_f+1] = σ√(π/2) [erf(u_f+1) - erf(u_f)].
     u = (edges[None, :] - centres[:, None]) / (sigma * _SQRT2)
     ua, ub = u[:, :-1], u[:, 1:]
@@ -119,11 +142,7 @@ def band_table(rig: Rig, *, fwhm_bound_nm: float | None = None) -> BandTable:
     diff = jnp.where(
         upper, jsp.erfc(ua) - jsp.erfc(ub), jsp.erfc(-ub) - jsp.erfc(-ua)
     )
-    overlap = sigma * np.sqrt(np.pi / 2.0) * diff
-    weight = rig.camera_response * rig.lamp
-    raw = overlap * weight[None, :]
-    gain = 1.0 / jnp.max(jnp.sum(raw, axis=1))
-    return BandTable(raw * gain, lo, TABLE_STEP_NM)
+    return sigma * np.sqrt(np.pi / 2.0) * diff
 
 
 def lookup(

@@ -42,7 +42,14 @@ from ._spectra import (
     resample,
 )
 
-__all__ = ["Rig", "DEFAULTS", "default_column_offsets_us"]
+__all__ = [
+    "Rig",
+    "DEFAULTS",
+    "SENSOR_PRESETS",
+    "SensorEffects",
+    "default_column_offsets_us",
+    "skewed_band_profile",
+]
 
 #: The paper's simulated rig (supplement 6.4), in the JSON contract's keys and units.
 DEFAULTS: dict[str, Any] = {
@@ -63,6 +70,17 @@ DEFAULTS: dict[str, Any] = {
     "baseline_rel": 0.03,
     "log_eps": 1e-5,
     "noise_rate_hz": 0.0,
+    "threshold_noise": 0.0,
+    "on_off_correlation": 1.0,
+    "timestamp_jitter_us": 0.0,
+    "latency_us": 0.0,
+    "photoreceptor_hz": 0.0,
+    "hot_pixel_fraction": 0.0,
+    "hot_pixel_rate_hz": 1000.0,
+    "sweep_rate_jitter": 0.0,
+    "psf_sigma_px": 0.0,
+    "sweep_curvature_nm": 0.0,
+    "band_profile": None,
     "reset_mode": "release",
     "seed": 0,
     "camera_response": None,
@@ -88,7 +106,23 @@ _DOC = {
     "refractory_us": "refractory period, µs",
     "baseline_rel": "constant light c, fraction of a white pixel's peak intensity",
     "log_eps": "ε in log(I + ε), fraction of a white pixel's peak intensity",
-    "noise_rate_hz": "background noise events per pixel per second (simulation only)",
+    "noise_rate_hz": "background-activity (noise) events per pixel per second",
+    "threshold_noise": "per-crossing threshold noise σ, log units (each crossing draws "
+    "its own threshold around the pixel's)",
+    "on_off_correlation": "correlation of a pixel's ON and OFF threshold deviations "
+    "(1: one shared deviation; 0: independent; simulation only)",
+    "timestamp_jitter_us": "Gaussian timestamp jitter σ, µs",
+    "latency_us": "constant event latency, µs (simulation only; absorbed by τx)",
+    "photoreceptor_hz": "photoreceptor low-pass cut-off at a white pixel's peak "
+    "intensity, Hz, proportional to intensity (0: instantaneous)",
+    "hot_pixel_fraction": "fraction of hot pixels firing steadily (simulation only)",
+    "hot_pixel_rate_hz": "event rate of a hot pixel, Hz (simulation only)",
+    "sweep_rate_jitter": "relative σ of each sweep's mirror speed (simulation only)",
+    "psf_sigma_px": "Gaussian optical point-spread σ, pixels (simulation only)",
+    "sweep_curvature_nm": "band-centre deviation from the linear sweep at mid-range, "
+    "nm (parabolic, zero at the channel range's ends)",
+    "band_profile": "null (Gaussian of fwhm_nm) or {offset_nm: [...], values: [...]}: "
+    "the band's sampled spectral profile around its centre",
     "reset_mode": "reference after an event: 'release' (level at end of refractory, "
     "paper Eq. 2) or 'event' (previous reference ± C)",
     "seed": "default PRNG seed for simulation",
@@ -98,6 +132,85 @@ _DOC = {
     "(H, W), log units (written by `evhsi calibrate`)",
     "channel_gain": "null or M per-channel response factors from a white reference; "
     "reconstructed spectra are divided by them",
+}
+
+#: Rig keys that describe the event sensor's non-idealities (all 0 / off by default:
+#: today's ideal sensor). The simulator draws them; `evhsi calibrate` measures those it
+#: can (threshold_noise, timestamp_jitter_us, noise_rate_hz) and the reconstruction
+#: weights its rows with them.
+EFFECT_KEYS = (
+    "threshold_noise",
+    "on_off_correlation",
+    "timestamp_jitter_us",
+    "latency_us",
+    "photoreceptor_hz",
+    "hot_pixel_fraction",
+    "hot_pixel_rate_hz",
+    "sweep_rate_jitter",
+    "psf_sigma_px",
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class SensorEffects:
+    """The event sensor's non-idealities (host-side settings, hashable).
+
+    Defaults are the ideal sensor. Magnitudes of the `realistic` preset and where they
+    come from: README "Sensor model". Fields are the rig keys of the same name.
+    """
+
+    threshold_noise: float = 0.0
+    on_off_correlation: float = 1.0
+    timestamp_jitter_us: float = 0.0
+    latency_us: float = 0.0
+    photoreceptor_hz: float = 0.0
+    hot_pixel_fraction: float = 0.0
+    hot_pixel_rate_hz: float = 1000.0
+    sweep_rate_jitter: float = 0.0
+    psf_sigma_px: float = 0.0
+
+    @property
+    def ideal(self) -> bool:
+        return self == SensorEffects()
+
+
+_IDEAL = SensorEffects()
+
+
+def skewed_band_profile(fwhm_nm: float, skew: float, n: int = 161) -> dict:
+    """A skew-normal band profile with the given FWHM (peak 1), as the rig's
+    `band_profile` JSON object. `skew` is the skew-normal shape α (0: Gaussian)."""
+    from scipy.stats import skewnorm
+
+    x = np.linspace(-6.0, 6.0, 4001)
+    y = skewnorm.pdf(x, skew)
+    y = y / y.max()
+    above = x[y >= 0.5]
+    width = above[-1] - above[0]
+    mode = x[np.argmax(y)]
+    off = np.linspace(-3.0 * fwhm_nm, 3.0 * fwhm_nm, n)
+    vals = np.interp(off / fwhm_nm * width + mode, x, y)
+    return {"offset_nm": off.tolist(), "values": (vals / vals.max()).tolist()}
+
+
+#: Named sensor presets for the rig key `"sensor"` (explicit keys override them).
+#: `realistic`: README "Sensor model" gives the sources of each magnitude.
+SENSOR_PRESETS: dict[str, dict[str, Any]] = {
+    "ideal": {},
+    "realistic": {
+        "threshold_noise": 0.01,
+        "on_off_correlation": 0.5,
+        "timestamp_jitter_us": 5.0,
+        "latency_us": 40.0,
+        "photoreceptor_hz": 10000.0,
+        "noise_rate_hz": 1.0,
+        "hot_pixel_fraction": 0.001,
+        "hot_pixel_rate_hz": 1000.0,
+        "sweep_rate_jitter": 0.002,
+        "psf_sigma_px": 0.5,
+        "sweep_curvature_nm": 3.0,
+        "band_profile": "skewed",
+    },
 }
 
 COLUMN_SPREAD = (
@@ -175,6 +288,7 @@ class Rig(eqx.Module):
     camera_response: Float[Array, " fine"]
     lamp: Float[Array, " fine"]
     column_offsets_us: Float[Array, " w"] | None
+    sweep_curvature_nm: Float[Array, ""]
     grid: SpectralGrid = eqx.field(static=True)
     samples_per_sweep: int = eqx.field(static=True)
     threshold_sigma: float = eqx.field(static=True)
@@ -184,6 +298,8 @@ class Rig(eqx.Module):
     spectra_json: tuple = eqx.field(static=True)
     threshold_map: str | None = eqx.field(static=True)
     channel_gain: tuple | None = eqx.field(static=True)
+    band_profile: tuple | None = eqx.field(static=True)
+    effects: SensorEffects = eqx.field(static=True)
 
     def __init__(self, **overrides):
         cfg = _validated({**DEFAULTS, **overrides})
@@ -219,8 +335,16 @@ class Rig(eqx.Module):
             "refractory_us",
             "baseline_rel",
             "log_eps",
+            "sweep_curvature_nm",
         ):
             setattr(self, k, _scalar(cfg[k]))
+        prof = cfg["band_profile"]
+        self.band_profile = (
+            None
+            if prof is None
+            else (tuple(prof["offset_nm"]), tuple(prof["values"]))
+        )
+        self.effects = SensorEffects(**{k: cfg[k] for k in EFFECT_KEYS})
         offs = cfg["column_offsets_us"]
         self.column_offsets_us = None if offs is None else jnp.asarray(offs, float)
         self.samples_per_sweep = cfg["samples_per_sweep"]
@@ -263,6 +387,19 @@ class Rig(eqx.Module):
                 raise AttributeError(k)
             object.__setattr__(new, k, v)
         return new
+
+    def without_host_settings(self) -> Rig:
+        """The same physics with every host-only setting (seed, simulation spreads and
+        rates, sensor effects, file names, the post-solve gain) at its default: what
+        compiled kernels take, so that changing such a setting never recompiles."""
+        return self.replace_static(
+            threshold_sigma=0.0,
+            noise_rate_hz=0.0,
+            seed=0,
+            threshold_map=None,
+            channel_gain=None,
+            effects=_IDEAL,
+        )
 
     def astype(self, dtype) -> Rig:
         """The same rig with every floating-point leaf cast to `dtype` (for float64,
@@ -308,9 +445,17 @@ class Rig(eqx.Module):
     def band_centre_nm(self, t_us, column_offset_us):
         """$λ_c = λ_0 + βω((t \\bmod P) + τ_x)$ for times `t_us` within/after a sweep."""
         local = jnp.mod(t_us, self.period_us)
-        return self.sweep_start_nm + self.beta_nm_per_rad * self.omega_rad_per_us * (
+        lin = self.sweep_start_nm + self.beta_nm_per_rad * self.omega_rad_per_us * (
             local + column_offset_us
         )
+        return lin + self.sweep_curvature_nm * self._curve(lin)
+
+    def _curve(self, lin_nm):
+        """Shape of the sweep's non-linearity: $1 - ((λ - λ_{mid})/h)^2$ over the
+        channel range's midpoint and half-width (1 at mid-range, 0 at its ends)."""
+        mid = 0.5 * (self.grid.start_nm + self.grid.stop_nm)
+        half = 0.5 * (self.grid.stop_nm - self.grid.start_nm)
+        return 1.0 - ((lin_nm - mid) / half) ** 2
 
     def load_threshold_maps(self, height: int, width: int):
         """The per-pixel `(threshold_on, threshold_off)` maps named by `threshold_map`,
@@ -343,7 +488,15 @@ class Rig(eqx.Module):
     def from_dict(cls, data: Any) -> Rig:
         if not isinstance(data, dict):
             raise ValueError("a rig file must hold a JSON object")
-        unknown = sorted(set(data) - set(DEFAULTS) - {"$schema", "comment"})
+        preset = data.get("sensor")
+        if preset is not None:
+            if preset not in SENSOR_PRESETS:
+                raise ValueError(
+                    f"rig key 'sensor' must be one of {sorted(SENSOR_PRESETS)}, got "
+                    f"{preset!r}"
+                )
+            data = {**SENSOR_PRESETS[preset], **data}
+        unknown = sorted(set(data) - set(DEFAULTS) - {"$schema", "comment", "sensor"})
         if unknown:
             raise ValueError(
                 f"unknown rig key(s) {unknown}; known keys: {sorted(DEFAULTS)}"
@@ -400,6 +553,17 @@ class Rig(eqx.Module):
         out["baseline_rel"] = _json_floats(self.baseline_rel)
         out["log_eps"] = _json_floats(self.log_eps)
         out["noise_rate_hz"] = self.noise_rate_hz
+        for k in EFFECT_KEYS:
+            out[k] = getattr(self.effects, k)
+        out["sweep_curvature_nm"] = _json_floats(self.sweep_curvature_nm)
+        out["band_profile"] = (
+            None
+            if self.band_profile is None
+            else {
+                "offset_nm": list(self.band_profile[0]),
+                "values": list(self.band_profile[1]),
+            }
+        )
         out["reset_mode"] = self.reset_mode
         out["seed"] = self.seed
         out["camera_response"] = json.loads(self.spectra_json[0])
@@ -435,6 +599,38 @@ def _json_floats(a):
     return vals[0] if arr.ndim == 0 else vals
 
 
+def _band_profile(prof, cfg):
+    if prof is None:
+        return None
+    if prof == "skewed":  # the realistic preset's band: skew-normal α = 3, same FWHM
+        return skewed_band_profile(_positive("fwhm_nm", cfg["fwhm_nm"]), 3.0)
+    msg = (
+        "rig key 'band_profile' must be null, \"skewed\" or an object with "
+        "'offset_nm' and 'values' lists of equal length (>= 3, offsets increasing, "
+        "values >= 0, not all 0)"
+    )
+    if not isinstance(prof, dict) or set(prof) != {"offset_nm", "values"}:
+        raise ValueError(msg)
+    try:
+        off = np.asarray(prof["offset_nm"], np.float64)
+        val = np.asarray(prof["values"], np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(msg) from None
+    if (
+        off.ndim != 1
+        or off.shape != val.shape
+        or off.size < 3
+        or off.size > 100_000
+        or not np.all(np.isfinite(off))
+        or not np.all(np.isfinite(val))
+        or np.any(np.diff(off) <= 0)
+        or np.any(val < 0)
+        or val.max() <= 0
+    ):
+        raise ValueError(msg)
+    return {"offset_nm": off.tolist(), "values": (val / val.max()).tolist()}
+
+
 def _validated(cfg: dict) -> dict:
     out = dict(cfg)
     ch = cfg["channels"]
@@ -460,8 +656,25 @@ def _validated(cfg: dict) -> dict:
     ):
         out[k] = _positive(k, cfg[k])
     out["refractory_us"] = _positive("refractory_us", cfg["refractory_us"])
-    for k in ("threshold_sigma", "baseline_rel", "noise_rate_hz"):
+    for k in ("threshold_sigma", "baseline_rel", "noise_rate_hz") + EFFECT_KEYS:
         out[k] = _positive(k, cfg[k], allow_zero=True)
+    if out["on_off_correlation"] > 1:
+        raise ValueError("rig key 'on_off_correlation' must be in [0, 1]")
+    if out["hot_pixel_fraction"] > 0.5:
+        raise ValueError("rig key 'hot_pixel_fraction' must be in [0, 0.5]")
+    if out["sweep_rate_jitter"] > 0.01:
+        raise ValueError("rig key 'sweep_rate_jitter' must be in [0, 0.01]")
+    if out["hot_pixel_rate_hz"] > 1e5 or out["noise_rate_hz"] > 1e5:
+        raise ValueError("event rates above 100 kHz per pixel are not supported")
+    try:
+        if isinstance(cfg["sweep_curvature_nm"], (bool, str, bytes)):
+            raise TypeError
+        out["sweep_curvature_nm"] = float(cfg["sweep_curvature_nm"])
+    except (TypeError, ValueError):
+        raise ValueError("rig key 'sweep_curvature_nm' must be a number") from None
+    if not abs(out["sweep_curvature_nm"]) <= 50:
+        raise ValueError("rig key 'sweep_curvature_nm' must be within ±50 nm")
+    out["band_profile"] = _band_profile(cfg["band_profile"], cfg)
     try:
         if isinstance(cfg["sweep_start_nm"], (bool, str, bytes)):
             raise TypeError

@@ -21,9 +21,14 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, ArrayLike, Float
 
-__all__ = ["exact_events_scan", "soft_event_counts", "initial_state"]
+__all__ = [
+    "exact_events_scan",
+    "soft_event_counts",
+    "initial_state",
+    "photoreceptor_lowpass",
+]
 
 _FAR_PAST = -1e9  # µs: "released long ago"
 
@@ -51,6 +56,7 @@ def exact_events_scan(
     state=None,
     *,
     reset_mode: str = "release",
+    reference_noise: Float[Array, "t1 p"] | None = None,
 ):
     """Run the exact pixel state machine over a time grid.
 
@@ -65,6 +71,11 @@ def exact_events_scan(
     - `reset_mode`: `"release"` (paper Eq. 2: the reference becomes the level at the end
       of the refractory period) or `"event"` (the reference steps by ±C at each event; a
       crossing during the refractory period fires when it ends).
+    - `reference_noise`: optional per-step offsets (log units), shape `(t-1, p)`, added
+      to the reference whenever it is set in that step (at release, or at the event in
+      `"event"` mode): per-crossing threshold noise — each crossing then needs
+      $C + ε$ with a fresh $ε$ (the reset/kTC noise of a real pixel acts the same way).
+      `None`: the ideal pixel (the same program as before this option existed).
 
     **Returns:** `(fired, time_us, is_on)`, each of shape `(t-1, p)` — whether the pixel
     fired in step `j` (between samples `j` and `j+1`), the interpolated event time, and
@@ -75,13 +86,14 @@ def exact_events_scan(
 
     def step(carry, inp):
         r, t_free, pending = carry
-        la, lb, ta, tb = inp
+        la, lb, ta, tb = inp[:4]
+        eps = inp[4] if reference_noise is not None else 0.0
         # End of refractory inside this step: reset the reference to the level then.
         rel = pending & (t_free <= tb)
         f_rel = _safe_frac(t_free - ta, tb - ta)
         l_rel = la + f_rel * (lb - la)
         if reset_mode == "release":
-            r = jnp.where(rel, l_rel, r)
+            r = jnp.where(rel, l_rel + eps, r)
         pending = pending & ~rel
         s = jnp.where(rel, ta + f_rel * (tb - ta), ta)
         ls = jnp.where(rel, l_rel, la)
@@ -99,10 +111,12 @@ def exact_events_scan(
         t_free = jnp.where(fired, tc + refractory_us, t_free)
         pending = pending | fired
         if reset_mode == "event":
-            r = jnp.where(fired, target, r)
+            r = jnp.where(fired, target + eps, r)
         return (r, t_free, pending), (fired, tc, up)
 
     inputs = (log_i[:-1], log_i[1:], t_us[:-1], t_us[1:])
+    if reference_noise is not None:
+        inputs = inputs + (reference_noise,)
     state, out = jax.lax.scan(step, state, inputs)
     return out, state
 
@@ -177,6 +191,35 @@ def soft_event_counts(
     return on, off
 
 
-def hard_counts(fired: Bool[Array, "t p"], is_on: Bool[Array, "t p"]):
-    """ON and OFF counts per step from the exact scan's output (for comparisons)."""
-    return (fired & is_on).astype(float), (fired & ~is_on).astype(float)
+def photoreceptor_lowpass(
+    log_i: Float[Array, "t p"],
+    dt_us: Float[ArrayLike, ""],
+    cutoff_hz: Float[ArrayLike, ""],
+    log_eps: Float[ArrayLike, ""],
+) -> Float[Array, "t p"]:
+    r"""The photoreceptor's first-order low-pass of the log-intensity, faster when
+    brighter (v2e's model: the cut-off is proportional to the photocurrent).
+
+    $y_j = a_j y_{j-1} + (1 - a_j) x_j$, $a_j = \exp(-2π f_c I_j Δt)$, with $x$ the
+    log-intensity, $I_j = e^{x_j} - ε$ the intensity as a fraction of a white pixel's
+    peak and $f_c$ the cut-off there (Hz). Exact for an input held constant over each
+    step; a linear recurrence, so it runs as an associative scan. Starts settled
+    ($y_0 = x_0$: the simulator's windows start in the dark part of the sweep).
+
+    **Arguments:** `log_i` `(t, p)` on a uniform grid of step `dt_us` (µs); `cutoff_hz`;
+    `log_eps` ε.
+
+    **Returns:** the filtered log-intensity, `(t, p)`.
+    """
+    inten = jnp.maximum(jnp.exp(log_i) - log_eps, 0.0)
+    a = jnp.exp(-2.0 * jnp.pi * cutoff_hz * 1e-6 * dt_us * inten)
+    a = a.at[0].set(0.0)
+    b = (1.0 - a) * log_i
+
+    def combine(left, right):
+        a1, b1 = left
+        a2, b2 = right
+        return a1 * a2, a2 * b1 + b2
+
+    _, y = jax.lax.associative_scan(combine, (a, b), axis=0)
+    return y

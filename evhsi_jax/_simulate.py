@@ -23,10 +23,10 @@ from tqdm.auto import tqdm
 
 from . import _shard
 from ._events import EventStream
-from ._illumination import BandTable, band_table, lookup
+from ._illumination import TABLE_STEP_NM, BandTable, band_table, lookup
 from ._rig import Rig
 from ._scenes import Scene
-from ._sensor import exact_events_scan, initial_state
+from ._sensor import exact_events_scan, initial_state, photoreceptor_lowpass
 from ._spectra import band_integrate_matrix
 
 __all__ = ["simulate", "SimulationInfo", "time_oversampling", "threshold_maps"]
@@ -43,6 +43,8 @@ class SimulationInfo:
     samples_per_sweep: int  # time samples per sweep actually simulated
     window_samples: int  # samples scanned per chunk and sweep
     noise_events: int
+    hot_pixels: np.ndarray | None = None  # (H, W) bool: the simulated hot pixels
+    speed_factor: np.ndarray | None = None  # (sweeps,) each sweep's mirror-speed factor
 
 
 def time_oversampling(rig: Rig) -> int:
@@ -58,14 +60,20 @@ def time_oversampling(rig: Rig) -> int:
 def threshold_maps(rig: Rig, height: int, width: int, *, key: PRNGKeyArray):
     """Per-pixel ON/OFF thresholds: $C = C_0 + δ$, $δ \\sim N(0, σ^2)$ per pixel.
 
-    One deviation δ per pixel is shared by both polarities (the paper's
-    "C ~ N(0.15, 0.01)" with symmetric triggering), so a pixel's ON and OFF thresholds
-    differ by the rig's global `threshold_on - threshold_off` only. Clipped below at
-    $0.1 C_0$ so a threshold is never ≤ 0.
+    The ON and OFF deviations have correlation ρ = `on_off_correlation`:
+    $δ_{off} = ρ δ_{on} + \\sqrt{1-ρ^2}\\,σ z$. With the default ρ = 1 one deviation is
+    shared by both polarities (the paper's "C ~ N(0.15, 0.01)" with symmetric
+    triggering); real pixels differ per polarity (the `realistic` preset uses
+    ρ = 0.5). Clipped below at $0.1 C_0$ so a threshold is never ≤ 0.
     """
     delta = rig.threshold_sigma * jr.normal(key, (height, width))
+    rho = rig.effects.on_off_correlation
+    delta_off = delta
+    if rho < 1.0:
+        own = rig.threshold_sigma * jr.normal(jr.fold_in(key, 1), (height, width))
+        delta_off = rho * delta + math.sqrt(1.0 - rho * rho) * own
     on = jnp.maximum(rig.threshold_on + delta, 0.1 * rig.threshold_on)
-    off = jnp.maximum(rig.threshold_off + delta, 0.1 * rig.threshold_off)
+    off = jnp.maximum(rig.threshold_off + delta_off, 0.1 * rig.threshold_off)
     return np.asarray(on), np.asarray(off)
 
 
@@ -121,9 +129,13 @@ def _windows(rig, table: BandTable, offsets, n_samples, dt, chunk_columns):
     return starts, length
 
 
-def _log_intensity(rig, table_values, lo_nm, t_local, offsets, spectra, labels):
-    """log(I + ε) of one chunk of columns over one sweep window, shape `(t, c*h)`."""
-    table = BandTable(table_values, lo_nm, 0.1)
+def _log_intensity(
+    rig, table_values, lo_nm, t_local, offsets, spectra, labels, lowpass_hz=None
+):
+    """log(I + ε) of one chunk of columns over one sweep window, shape `(t, c*h)`;
+    through the photoreceptor low-pass when `lowpass_hz` (its cut-off at white) is
+    given."""
+    table = BandTable(table_values, lo_nm, TABLE_STEP_NM)
     centres = rig.band_centre_nm(t_local[None, :], offsets[:, None])  # (c, t)
     a = lookup(table, centres)  # (c, t, f)
     if spectra.ndim == 2:  # palette: traces per spectrum, then gather by label
@@ -134,10 +146,15 @@ def _log_intensity(rig, table_values, lo_nm, t_local, offsets, spectra, labels):
     inten = inten + rig.baseline_rel
     log_i = jnp.log(jnp.maximum(inten, 0.0) + rig.log_eps)
     c, t, h = log_i.shape
-    return jnp.transpose(log_i, (1, 0, 2)).reshape(t, c * h)
+    log_i = jnp.transpose(log_i, (1, 0, 2)).reshape(t, c * h)
+    if lowpass_hz is not None:
+        log_i = photoreceptor_lowpass(
+            log_i, t_local[1] - t_local[0], lowpass_hz, rig.log_eps
+        )
+    return log_i
 
 
-def _scan(rig, log_i, t_local, thr_on, thr_off, state):
+def _scan(rig, log_i, t_local, thr_on, thr_off, state, ref_noise=None):
     if state is None:
         state = initial_state(log_i[0])
     return exact_events_scan(
@@ -148,6 +165,7 @@ def _scan(rig, log_i, t_local, thr_on, thr_off, state):
         rig.refractory_us,
         state,
         reset_mode=rig.reset_mode,
+        reference_noise=ref_noise,
     )
 
 
@@ -156,13 +174,28 @@ _scan_jit = eqx.filter_jit(_scan)
 
 
 @eqx.filter_jit
-def _fused(rig, table_values, lo_nm, t_local, offsets, spectra, labels, *scan_args):
-    log_i = _log_intensity(rig, table_values, lo_nm, t_local, offsets, spectra, labels)
+def _fused(
+    rig, table_values, lo_nm, t_local, offsets, spectra, labels, lowpass_hz, *scan_args
+):
+    log_i = _log_intensity(
+        rig, table_values, lo_nm, t_local, offsets, spectra, labels, lowpass_hz
+    )
     return _scan(rig, log_i, t_local, *scan_args)
 
 
 def _chunk_kernel(
-    rig, table_values, lo_nm, t_local, offsets, spectra, labels, thr_on, thr_off, state
+    rig,
+    table_values,
+    lo_nm,
+    t_local,
+    offsets,
+    spectra,
+    labels,
+    thr_on,
+    thr_off,
+    state,
+    lowpass_hz=None,
+    ref_noise=None,
 ):
     """Scan one chunk of columns over one sweep window. Shapes are static per run.
 
@@ -173,9 +206,9 @@ def _chunk_kernel(
     """
     if spectra.ndim == 2:
         log_i = _log_intensity_jit(
-            rig, table_values, lo_nm, t_local, offsets, spectra, labels
+            rig, table_values, lo_nm, t_local, offsets, spectra, labels, lowpass_hz
         )
-        out, state = _scan_jit(rig, log_i, t_local, thr_on, thr_off, state)
+        out, state = _scan_jit(rig, log_i, t_local, thr_on, thr_off, state, ref_noise)
     else:
         out, state = _fused(
             rig,
@@ -185,9 +218,11 @@ def _chunk_kernel(
             offsets,
             spectra,
             labels,
+            lowpass_hz,
             thr_on,
             thr_off,
             state,
+            ref_noise,
         )
     fired, tc, up = out
     return fired, tc, up, state
@@ -236,6 +271,23 @@ def simulate(
     _check_sweep_fits(rig, offsets)
     k_thr, k_noise = jr.split(key)
     thr_on, thr_off = threshold_maps(rig, h, w, key=k_thr)
+    fx = rig.effects
+    # Keys of the sensor effects, derived so that the ideal sensor's draws (thresholds,
+    # background noise) are the same as without them.
+    k_ref, k_time, k_hot, k_sweep = (jr.fold_in(key, 1000 + i) for i in range(4))
+    if (fx.threshold_noise > 0 or fx.photoreceptor_hz > 0) and mesh is not None:
+        raise ValueError(
+            "threshold_noise and photoreceptor_hz are not simulated on a device mesh "
+            "yet: simulate on one device"
+        )
+    if fx.psf_sigma_px > 0:
+        scenes = [_blurred(sc, fx.psf_sigma_px) for sc in scenes]
+    speed_factor = np.ones(sweeps)
+    if fx.sweep_rate_jitter > 0:
+        speed_factor = 1.0 + fx.sweep_rate_jitter * np.asarray(
+            jr.normal(k_sweep, (sweeps,)), np.float64
+        )
+    kernel_rig = rig.without_host_settings()
 
     os_ = time_oversampling(rig)
     n = rig.samples_per_sweep * os_
@@ -274,7 +326,17 @@ def simulate(
     )
     groups = _shard.chunk_groups(n_chunks, mesh)  # one chunk each without a mesh
     group_states = [None] * len(groups)
+    lowpass_hz = (
+        jnp.asarray(fx.photoreceptor_hz, dtype) if fx.photoreceptor_hz > 0 else None
+    )
     for s_idx, sc in enumerate(scenes):
+        # Mirror-speed jitter: the whole sweep λc(t) runs faster or slower by a factor
+        # (β·ω scales together), which is a change of β for this sweep.
+        srig = kernel_rig
+        if speed_factor[s_idx] != 1.0:
+            srig = kernel_rig.with_leaves(
+                beta_nm_per_rad=kernel_rig.beta_nm_per_rad * speed_factor[s_idx]
+            )
         tab_vals, pal = basis(sc)
         use_palette = pal.shape[0] < h
         pal_j = jnp.asarray(pal, dtype)
@@ -300,15 +362,20 @@ def simulate(
                 state = (r, t_free - period, pend)
             ins = [chunk_inputs(ci) for ci in group]
             if mesh is None:
+                ref_noise = None
+                if fx.threshold_noise > 0:
+                    k = jr.fold_in(jr.fold_in(k_ref, s_idx), group[0])
+                    shape = (length - 1, chunk_columns * h)
+                    ref_noise = fx.threshold_noise * jr.normal(k, shape, dtype)
                 *out, group_states[gi] = _chunk_kernel(
-                    rig, tab_vals, fine.lo_nm, *ins[0], state
+                    srig, tab_vals, fine.lo_nm, *ins[0], state, lowpass_hz, ref_noise
                 )
                 outs = [out]
             else:
                 t_loc, offs, spectra, lab, con, coff = (np.stack(a) for a in zip(*ins))
                 spectra = pal_j if use_palette else spectra
                 *out, group_states[gi] = _shard.scan_chunks_sharded(
-                    mesh, rig, tab_vals, fine.lo_nm, spectra, t_loc, offs, lab, con,
+                    mesh, srig, tab_vals, fine.lo_nm, spectra, t_loc, offs, lab, con,
                     coff, state,
                 )  # fmt: skip
                 outs = list(zip(*out))
@@ -334,11 +401,18 @@ def simulate(
                 bar.update(1)
     bar.close()
 
+    if fx.timestamp_jitter_us > 0 or fx.latency_us > 0:
+        out_cols["t"] = _jittered(out_cols["t"], fx, key=k_time)
     n_noise = 0
     if rig.noise_rate_hz > 0:
         noise = _noise_events(rig, h, w, sweeps * period, key=k_noise)
         n_noise = noise[0].size
         for k, v in zip(("x", "y", "p", "t"), noise):
+            out_cols[k].append(v)
+    hot = np.zeros((h, w), bool)
+    if fx.hot_pixel_fraction > 0:
+        hot, extra = _hot_pixel_events(fx, h, w, sweeps * period, key=k_hot)
+        for k, v in zip(("x", "y", "p", "t"), extra):
             out_cols[k].append(v)
     cat = {k: np.concatenate(v) if v else np.zeros(0) for k, v in out_cols.items()}
     order = np.argsort(cat["t"], kind="stable")
@@ -356,7 +430,7 @@ def simulate(
     )
     if not return_info:
         return events
-    info = SimulationInfo(thr_on, thr_off, n, length, n_noise)
+    info = SimulationInfo(thr_on, thr_off, n, length, n_noise, hot, speed_factor)
     return events, info
 
 
@@ -373,4 +447,57 @@ def _noise_events(rig: Rig, h: int, w: int, duration_us: float, *, key):
         rng.integers(0, h, count).astype(np.uint16),
         rng.integers(0, 2, count).astype(np.uint8),
         np.floor(rng.uniform(0, duration_us, count)).astype(np.int64),
+    )
+
+
+def _rng(key) -> np.random.Generator:
+    return np.random.default_rng(np.asarray(jr.key_data(key)).ravel().tolist())
+
+
+def _jittered(times: list[np.ndarray], fx, *, key) -> list[np.ndarray]:
+    """Add the constant latency and Gaussian timestamp jitter to integer µs times (the
+    jittered crossing time is floored again, as the sensor's counter would)."""
+    rng = _rng(key)
+    out = []
+    for t in times:
+        d = fx.latency_us + fx.timestamp_jitter_us * rng.standard_normal(t.size)
+        out.append(np.maximum(np.floor(t + 0.5 + d), 0).astype(np.int64))
+    return out
+
+
+def _hot_pixel_events(fx, h: int, w: int, duration_us: float, *, key):
+    """Hot pixels: a fraction of the pixels fires all the time, independent of the
+    light — a Poisson process at `hot_pixel_rate_hz` with alternating polarity (a
+    leaky pixel's reference keeps walking one way and back). Returns the hot-pixel mask
+    and the events `(x, y, p, t)`."""
+    rng = _rng(key)
+    n_hot = max(1, int(round(fx.hot_pixel_fraction * h * w)))
+    flat = rng.choice(h * w, size=min(n_hot, h * w), replace=False)
+    hot = np.zeros(h * w, bool)
+    hot[flat] = True
+    counts = rng.poisson(fx.hot_pixel_rate_hz * duration_us * 1e-6, flat.size)
+    pix = np.repeat(flat, counts)
+    t = np.floor(rng.uniform(0, duration_us, pix.size)).astype(np.int64)
+    order = np.lexsort((t, pix))
+    pix, t = pix[order], t[order]
+    rank = np.arange(pix.size) - np.repeat(np.cumsum(counts) - counts, counts)
+    p = (rank % 2).astype(np.uint8)
+    y, x = np.divmod(pix, w)
+    return hot.reshape(h, w), (x.astype(np.uint16), y.astype(np.uint16), p, t)
+
+
+def _blurred(scene: Scene, sigma_px: float) -> Scene:
+    """The scene seen through a Gaussian point-spread function of σ pixels (applied to
+    reflectance: exact where neighbouring columns see the same band, i.e. the blur is
+    much narrower than the band's width on the sensor — true for the default rig,
+    whose band spans hundreds of columns)."""
+    from scipy.ndimage import gaussian_filter
+
+    cube = scene.palette[scene.labels]  # (H, W, L)
+    blurred = gaussian_filter(cube, sigma=(sigma_px, sigma_px, 0), mode="nearest")
+    h, w, n = blurred.shape
+    return Scene(
+        palette=np.clip(blurred.reshape(h * w, n), 0.0, 1.0),
+        wavelengths_nm=scene.wavelengths_nm,
+        labels=np.arange(h * w).reshape(h, w),
     )
