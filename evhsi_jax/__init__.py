@@ -86,6 +86,12 @@ from ._calibrate import (
 from ._calibrate import (
     threshold_maps_from_chart as threshold_maps_from_chart,
 )
+from ._calibration import (
+    Calibration as Calibration,
+)
+from ._calibration import (
+    load_calibration as load_calibration,
+)
 from ._cubefile import load_cube as load_cube
 from ._cubefile import save_cube as save_cube
 from ._design import DesignLimits as DesignLimits
@@ -229,7 +235,9 @@ from ._render import (
 from ._render import (
     write_png as write_png,
 )
+from ._rig import SENSOR_PRESETS as SENSOR_PRESETS
 from ._rig import Rig as Rig
+from ._rig import SensorEffects as SensorEffects
 from ._scenes import BUILTIN_SCENES as BUILTIN_SCENES
 from ._scenes import Scene as Scene
 from ._scenes import load_scene as load_scene

@@ -51,9 +51,12 @@ import lineax as lx
 import numpy as np
 import optimistix as optx
 
+from ._calibration import Calibration
 from ._events import EventStream
 from ._illumination import BandTable, band_table, lookup
+from ._reconstruct._pipeline import noise_model, screen_events
 from ._reconstruct._pixels import group_pixels
+from ._reconstruct._problem import lit_interval_us
 from ._rig import Rig
 from ._scenes import Scene
 
@@ -230,6 +233,15 @@ def chart_log_steps(rig: Rig, data, traces=None):
         )
         return jnp.log(jnp.maximum(a, 0.0) + c1)
 
+    hz = rig.effects.photoreceptor_hz
+    if hz > 0:  # a known photoreceptor low-pass: events lag the level by d_w / I
+        d_w = 1e6 / (2.0 * np.pi * hz)
+        plain = level
+
+        def level(tt):
+            delay = jnp.minimum(d_w * jnp.exp(-plain(tt)), 5000.0)
+            return plain(tt - delay)
+
     return jnp.where(m, level(t) - level(t_ref), 0.0)
 
 
@@ -335,12 +347,111 @@ class CalibrationResult:
     rig: Rig
     threshold_on_map: np.ndarray | None
     threshold_off_map: np.ndarray | None
+    hot_pixels: np.ndarray | None
+    converged: bool  # Levenberg–Marquardt met its tolerances (else: max_steps)
+    outlier_pixels: int  # chart pixels dropped for unexplained events
     rms_residual: float  # threshold units (1 = one threshold), over all fitted events
     rms_residual_initial: float
     steps: int
     events_used: int
     pixels_used: int
     seconds: float
+
+    @property
+    def calibration(self) -> Calibration:
+        """The result as a :class:`Calibration` (what `reconstruct` takes)."""
+        e = self.rig.effects
+        return Calibration(
+            self.rig,
+            self.threshold_on_map,
+            self.threshold_off_map,
+            self.hot_pixels,
+            {
+                "rms_residual_thresholds": self.rms_residual,
+                "rms_residual_initial": self.rms_residual_initial,
+                "converged": self.converged,
+                "steps": self.steps,
+                "events_used": self.events_used,
+                "pixels_used": self.pixels_used,
+                "outlier_pixels": self.outlier_pixels,
+                "hot_pixels": int(0 if self.hot_pixels is None else self.hot_pixels.sum()),
+                "threshold_noise": e.threshold_noise,
+                "timestamp_jitter_us": e.timestamp_jitter_us,
+                "noise_rate_hz": self.rig.noise_rate_hz,
+                "seconds": self.seconds,
+                "not_measured": "photoreceptor_hz (kept from the initial rig)",
+            },
+        )
+
+
+SCREEN_MARGIN_US = 500.0  # lit-interval margin when screening a chart capture
+MAX_RMS_RESIDUAL = 0.5  # threshold units: above, the capture is not the chart
+
+
+def _sweeps_of(events, rig, t_start_us) -> int:
+    span = float(events.t_us[-1] - t_start_us) if len(events) else 0.0
+    return max(1, int(np.ceil((span + 1.0) / float(rig.period_us))))
+
+
+def _outlier_pixels(r: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Pixels with a residual beyond max(0.5, 8 robust σ) threshold units."""
+    vals = np.abs(r[mask])
+    if vals.size == 0:
+        return np.zeros(r.shape[0], bool)
+    sigma = 1.4826 * np.median(vals)
+    limit = max(0.5, 8.0 * sigma)
+    return np.any((np.abs(r) > limit) & mask, axis=1)
+
+
+def measure_noise(rig: Rig, data: ChartData, residuals: np.ndarray) -> dict:
+    """Per-crossing threshold noise and timestamp jitter from the fitted residuals.
+
+    A residual $r_k$ (threshold units, each pixel's own thresholds profiled out) times
+    C is the event's log-step error, whose variance is $σ_C^2 + 2σ_t^2 s_k^2$ plus
+    the timestamps' rounding $2 s_k^2/12$ (the model of
+    :func:`evhsi_jax.reconstruction.pixel_system`), $s_k$ the log-intensity's slope
+    at the event — on a chart known from the model. The two are separable because
+    the slope differs from event to event: least squares of $(r_k C)^2$ on
+    $[1, 2 s_k^2]$, after dropping the top 1 % (outliers), each clipped at 0. The
+    photoreceptor's low-pass is not identified here (its mean delay is absorbed by
+    the column offsets).
+
+    **Returns:** `{"threshold_noise": σ_C, "timestamp_jitter_us": σ_t}`.
+    """
+    c = 0.5 * (float(rig.threshold_on) + float(rig.threshold_off))
+    steps = _log_steps(rig, data)
+    t = data.t_us
+    t_ref = np.concatenate([np.zeros_like(t[:, :1]), t[:, :-1] + float(rig.refractory_us)], axis=1)  # noqa: E501
+    slope = np.abs(steps) / np.maximum(t - t_ref, 1.0)
+    m = data.mask & np.isfinite(residuals)
+    m[:, 0] = False  # the first event refers to the recording start
+    e2 = (residuals * c)[m] ** 2
+    s2 = 2.0 * slope[m] ** 2
+    if e2.size < 10:
+        return {"threshold_noise": 0.0, "timestamp_jitter_us": 0.0}
+    keep = e2 <= np.quantile(e2, 0.99)
+    a = np.stack([np.ones(keep.sum()), s2[keep]], axis=1)
+    coef, *_ = np.linalg.lstsq(a, e2[keep] - s2[keep] / 12.0, rcond=None)
+    return {
+        "threshold_noise": float(np.sqrt(max(coef[0], 0.0))),
+        "timestamp_jitter_us": float(np.sqrt(max(coef[1], 0.0))),
+    }
+
+
+def _background_rate(events, hot, rig, t_start_us) -> float:
+    """Background-activity rate per pixel (Hz): events outside the lit intervals of
+    pixels that are not hot, over the dark time they had."""
+    sweeps = _sweeps_of(events, rig, t_start_us)
+    kept, _, _ = screen_events(events, rig, t_start_us, noise_model(rig), sweeps, hot)
+    h, w = events.height, events.width
+    n_out = len(events) - len(kept) - int(np.isin(
+        events.y.astype(np.int64) * w + events.x, np.flatnonzero(hot)
+    ).sum())  # fmt: skip
+    offs = np.asarray(rig.column_offsets(w), np.float64)
+    u_arr, u_lv = (np.asarray(v, np.float64) for v in lit_interval_us(rig, offs))
+    dark = float(np.mean(float(rig.period_us) - (u_lv - u_arr) - 400.0)) * sweeps
+    n_pix = max(h * w - int(hot.sum()), 1)
+    return max(n_out, 0) / (n_pix * max(dark, 1.0) * 1e-6)
 
 
 def initial_guess(data: ChartData, rig: Rig) -> Rig:
@@ -479,9 +590,25 @@ def _calibrate64(
             f"initial rig has {rig.column_offsets_us.shape[0]} column offsets, the "
             f"capture is {w} columns wide"
         )
+    if t_start_us is None:
+        t_start_us = int(events.trigger_t_us[0]) if events.trigger_t_us.size else 0
     data = chart_data(
         events, chart, rig, t_start_us=t_start_us, rows_per_label=rows_per_label
     )
+    captured = events
+    if from_data:
+        # Background activity and hot pixels are not in the model: find them with a
+        # first guess of the sweep's timing, drop their events, then start again.
+        rig0 = initial_guess(data, rig)
+        events, hot, _ = screen_events(
+            events, rig0, t_start_us, None, _sweeps_of(events, rig0, t_start_us),
+            margin_us=SCREEN_MARGIN_US,
+        )  # fmt: skip
+        data = chart_data(
+            events, chart, rig, t_start_us=t_start_us, rows_per_label=rows_per_label
+        )
+    else:
+        hot = np.zeros((events.height, events.width), bool)
     n_on = int((data.mask & (data.polarity > 0)).sum())
     n_off = int((data.mask & (data.polarity < 0)).sum())
     if n_on < 10 or n_off < 10:
@@ -511,7 +638,10 @@ def _calibrate64(
         "resp": jnp.zeros((response_degree,), dtype),
     }
 
-    def residuals(params, profile):
+    keep = jnp.ones(data.t_us.shape[0], dtype)  # pixels in the fit (outliers: 0)
+
+    def residuals(params, args):
+        profile, keep = args if isinstance(args, tuple) else (args, None)
         r = _apply(params, rig, basis)
         if not fit_baseline:
             r = eqx.tree_at(lambda q: q.baseline_rel, r, rig.baseline_rel)
@@ -521,6 +651,8 @@ def _calibrate64(
             else spectral_traces(r, data.spectra)
         )
         res = chart_residuals(r, dev, traces, per_pixel=profile)
+        if keep is not None:
+            res = res * keep[:, None]
         # The prior acts on the absolute offsets (the starting guess may be rough).
         tau = rig.column_offsets_us + TAU_SCALE_US * params["tau"]
         smooth = SMOOTH_WEIGHT * (tau[2:] - 2 * tau[1:-1] + tau[:-2])
@@ -563,15 +695,16 @@ def _calibrate64(
     def theta_of(u):
         return jax.tree.map(lambda a, b: a / b, u, scale)
 
-    def residuals_u(u, profile):
-        return residuals(theta_of(u), profile)
+    def residuals_u(u, args):
+        return residuals(theta_of(u), args)
 
     @eqx.filter_jit
-    def _sum_sq(params, profile):
-        return jnp.sum(residuals(params, profile)[0] ** 2)
+    def _sum_sq(params, args):
+        return jnp.sum(residuals(params, args)[0] ** 2)
 
     def rms_of(params, profile):
-        return float(jnp.sqrt(_sum_sq(params, profile) / data.events))
+        n = int((data.mask & (np.asarray(keep) > 0)[:, None]).sum())
+        return float(jnp.sqrt(_sum_sq(params, (profile, keep)) / max(n, 1)))
 
     r0 = rms_of(p0, False)
     solver = optx.LevenbergMarquardt(
@@ -585,11 +718,19 @@ def _calibrate64(
     # every pixel's thresholds profiled out, so per-pixel mismatch cannot bias β, c, τx;
     # the thresholds then follow in closed form and the rig's global pair is their mean.
     u, steps = jax.tree.map(lambda a, b: a * b, p0, scale), 0
+    converged = True
+    outlier_pixels = 0
     for profile in (False, True) if per_pixel else (False,):
         sol = optx.least_squares(
-            residuals_u, solver, u, args=profile, max_steps=max_steps, throw=False
+            residuals_u,
+            solver,
+            u,
+            args=(profile, keep),
+            max_steps=max_steps,
+            throw=False,
         )
         steps += int(sol.stats["num_steps"])
+        converged = sol.result == optx.RESULTS.successful
         u = sol.value
         params = theta_of(u)
         if not all(bool(jnp.all(jnp.isfinite(v))) for v in jax.tree.leaves(params)):
@@ -599,7 +740,19 @@ def _calibrate64(
                 f"calibrate (profiled={profile}): {sol.result}, rms "
                 f"{rms_of(params, profile):.5f}"
             )
+        if not profile:
+            # Robustness: a pixel with an event the model cannot explain (a noise
+            # event inside the lit interval, a missed crossing) is dropped whole —
+            # one bad event also corrupts its neighbour's reference.
+            r = np.asarray(residuals(params, per_pixel)[0]).reshape(data.t_us.shape)
+            bad_px = _outlier_pixels(r, data.mask)
+            outlier_pixels = int(bad_px.sum())
+            if 0 < outlier_pixels < 0.5 * bad_px.size:
+                keep = jnp.asarray(~bad_px, dtype)
     rms = rms_of(params, per_pixel)
+    res_final = np.asarray(residuals(params, (per_pixel, keep))[0])
+    res_final = res_final.reshape(data.t_us.shape)
+    data = dataclasses.replace(data, mask=data.mask & (np.asarray(keep) > 0)[:, None])
     fitted = _apply(params, rig, basis)
     if not fit_baseline:
         fitted = eqx.tree_at(lambda q: q.baseline_rel, fitted, rig.baseline_rel)
@@ -618,10 +771,30 @@ def _calibrate64(
                 jnp.asarray(np.nanmean(c_off), dtype),
             ),
         )
+    noise = measure_noise(fitted, data, res_final)
+    bg_rate = _background_rate(captured, hot, fitted, t_start_us)
+    if rms > MAX_RMS_RESIDUAL:
+        raise ValueError(
+            f"the calibration does not fit its data: RMS residual {rms:.2f} thresholds "
+            f"after {steps} steps (a gray-chart capture of this rig fits to < "
+            f"{MAX_RMS_RESIDUAL}); is the capture a gray chart of the given size, "
+            "lit by the sweep?"
+        )
+    fitted = fitted.replace_static(
+        effects=dataclasses.replace(
+            fitted.effects,
+            threshold_noise=noise["threshold_noise"],
+            timestamp_jitter_us=noise["timestamp_jitter_us"],
+        ),
+        noise_rate_hz=bg_rate,
+    )
     return CalibrationResult(
         rig=fitted,
         threshold_on_map=on_map,
         threshold_off_map=off_map,
+        hot_pixels=hot,
+        converged=bool(converged),
+        outlier_pixels=outlier_pixels,
         rms_residual=rms,
         rms_residual_initial=r0,
         steps=steps,
@@ -703,34 +876,21 @@ def threshold_maps_from_chart(
 
 
 def save_calibration(path, result: CalibrationResult, *, comment: str = "") -> dict:
-    """Write a calibration file: the rig JSON (every key) plus, if per-pixel maps were
-    fitted, a sibling `<stem>_thresholds.npz` that the JSON names. Both atomic.
+    """Write a calibration file pair (:meth:`Calibration.save`): the rig JSON with every
+    key and the measured sensor noise, and a sibling `<stem>_thresholds.npz` with the
+    per-pixel maps that the JSON names. Both atomic.
 
     **Returns:** the JSON object written.
     """
-    import json
-    from pathlib import Path
-
-    from ._events import atomic_write
-
-    path = Path(path)
-    cfg = result.rig.to_dict()
-    if result.threshold_on_map is not None:
-        map_path = path.with_name(path.stem + "_thresholds.npz")
-        on, off = result.threshold_on_map, result.threshold_off_map
-        atomic_write(
-            map_path, lambda f: np.savez(f, threshold_on=on, threshold_off=off)
-        )
-        cfg["threshold_map"] = map_path.name
-    cfg["comment"] = (
+    cal = result.calibration
+    report = dict(cal.report)
+    report["comment"] = (
         (comment + ": " if comment else "")
         + f"rms residual {result.rms_residual:.2e} (start "
         f"{result.rms_residual_initial:.2e}) thresholds over {result.events_used} events "
         f"of {result.pixels_used} pixels, {result.steps} LM steps, {result.seconds:.0f} s"
     )
-    text = json.dumps(cfg, indent=2) + "\n"
-    atomic_write(path, lambda f: f.write(text.encode()))
-    return cfg
+    return dataclasses.replace(cal, report=report).save(path)
 
 
 def spectral_correction(

@@ -457,32 +457,6 @@ class Rig(eqx.Module):
         half = 0.5 * (self.grid.stop_nm - self.grid.start_nm)
         return 1.0 - ((lin_nm - mid) / half) ** 2
 
-    def load_threshold_maps(self, height: int, width: int):
-        """The per-pixel `(threshold_on, threshold_off)` maps named by `threshold_map`,
-        each `(H, W)` in log units, or `(None, None)` when the rig has none."""
-        if self.threshold_map is None:
-            return None, None
-        path = Path(self.threshold_map)
-        if not path.is_file():
-            raise ValueError(f"threshold map file not found: {path}")
-        try:
-            with np.load(path, allow_pickle=False) as data:
-                on = np.asarray(data["threshold_on"], np.float64)
-                off = np.asarray(data["threshold_off"], np.float64)
-        except (KeyError, OSError, ValueError) as err:
-            raise ValueError(
-                f"{path} is not a threshold map (.npz with threshold_on and "
-                f"threshold_off): {err}"
-            ) from None
-        for name, arr in (("threshold_on", on), ("threshold_off", off)):
-            if arr.shape != (height, width):
-                raise ValueError(
-                    f"{path}: {name} map is {arr.shape}, the sensor is {(height, width)}"
-                )
-            if not np.all(np.isfinite(arr)) or np.any(arr <= 0):
-                raise ValueError(f"{path}: {name} map must be finite and > 0")
-        return on, off
-
     # --- JSON ------------------------------------------------------------------------
     @classmethod
     def from_dict(cls, data: Any) -> Rig:
@@ -496,7 +470,9 @@ class Rig(eqx.Module):
                     f"{preset!r}"
                 )
             data = {**SENSOR_PRESETS[preset], **data}
-        unknown = sorted(set(data) - set(DEFAULTS) - {"$schema", "comment", "sensor"})
+        unknown = sorted(
+            set(data) - set(DEFAULTS) - {"$schema", "comment", "sensor", "calibration"}
+        )
         if unknown:
             raise ValueError(
                 f"unknown rig key(s) {unknown}; known keys: {sorted(DEFAULTS)}"

@@ -37,6 +37,7 @@ import os
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
@@ -148,16 +149,17 @@ def _replicated(mesh, tree):
 
 # --- reconstruction ------------------------------------------------------------------
 @functools.lru_cache(maxsize=64)
-def _solver_fn(mesh, cfg, spec, sub, sweeps):
+def _solver_fn(mesh, cfg, spec, sub, sweeps, with_noise):
     from ._reconstruct._pipeline import _solve_chunk
 
-    def local(rig, table, *rows):
-        return _solve_chunk(rig, table, cfg, spec, sub, *rows[:-1], rows[-1], sweeps)
+    def local(rig, table, noise, *rows):
+        noise = noise if with_noise else None
+        return _solve_chunk(rig, table, cfg, spec, sub, *rows, sweeps, noise)
 
     mapped = jax.shard_map(
         local,
         mesh=mesh,
-        in_specs=(P(), P()) + (P(PIXELS),) * 7,
+        in_specs=(P(), P(), P()) + (P(PIXELS),) * 7,
         out_specs=(P(PIXELS), P(PIXELS)),
         check_vma=False,
     )
@@ -195,6 +197,7 @@ def solve_chunk_sharded(
     thr_off,
     phase,
     sweeps: int,
+    noise=None,
 ):
     """The reconstruction's chunk kernel with its pixels split over `mesh`.
 
@@ -209,8 +212,14 @@ def solve_chunk_sharded(
         to_global(mesh, np.asarray(a))
         for a in (t_us, polarity, mask, offsets, thr_on, thr_off, phase)
     ]
-    fn = _solver_fn(mesh, cfg, spec, int(sub), int(sweeps))
-    x, kkt = fn(_replicated(mesh, rig), _replicated(mesh, table), *rows)
+    fn = _solver_fn(mesh, cfg, spec, int(sub), int(sweeps), noise is not None)
+    noise_arr = jnp.zeros(3, table.values.dtype) if noise is None else noise
+    x, kkt = fn(
+        _replicated(mesh, rig),
+        _replicated(mesh, table),
+        _replicated(mesh, noise_arr),
+        *rows,
+    )
     return to_host(x), to_host(kkt)
 
 

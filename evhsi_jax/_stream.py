@@ -59,6 +59,7 @@ from pathlib import Path
 import numpy as np
 from tqdm.auto import tqdm
 
+from ._calibration import Calibration
 from ._cubefile import load_cube, save_cube
 from ._events import EventStream, atomic_write
 from ._io import iter_events
@@ -421,7 +422,7 @@ def write_preview_gif(
 
 def reconstruct_sweeps(
     source: str | os.PathLike | EventStream,
-    rig: Rig,
+    calibration: Calibration | Rig,
     out_dir: str | os.PathLike,
     *,
     solver: str = "auto",
@@ -452,8 +453,9 @@ def reconstruct_sweeps(
 
     - `source`: an event file (`.raw` EVT 3.0/2.0 streamed in chunks, or `.npz`) or an
       in-memory :class:`EventStream`.
-    - `rig`: the calibration; `threshold_on_map`, `threshold_off_map`: optional
-      per-pixel thresholds `(H, W)`, log units.
+    - `calibration`: a :class:`Calibration` (or a bare rig); `threshold_on_map`,
+      `threshold_off_map`: optional per-pixel thresholds `(H, W)`, log units, that
+      override the calibration's.
     - `out_dir`: the dataset folder (created; its parent must exist).
     - `solver`, `config`, `chunk_pixels`, `sub_batch`, `mesh`: as for
       :func:`evhsi_jax.reconstruct` (`mesh` shards each sweep's pixels over devices).
@@ -489,6 +491,15 @@ def reconstruct_sweeps(
     if max_sweeps is not None and max_sweeps < 1:
         raise ValueError(f"max_sweeps must be >= 1, got {max_sweeps}")
     writer = is_main_process()
+    if isinstance(calibration, Rig) and calibration.threshold_map is not None:
+        raise ValueError(
+            "this rig names per-pixel threshold maps that would be ignored: load the "
+            "file with evhsi_jax.load_calibration(path) and pass that"
+        )
+    cal = calibration if isinstance(calibration, Calibration) else Calibration(calibration)
+    rig = cal.rig
+    if threshold_on_map is None and cal.threshold_on is not None:
+        threshold_on_map, threshold_off_map = cal.threshold_on, cal.threshold_off
     spec = solver_spec(solver)
     cfg = config or ProblemConfig()
     period = float(period_us) if period_us else float(rig.period_us)
@@ -579,7 +590,7 @@ def reconstruct_sweeps(
             t0 = time.perf_counter()
             cube, info = reconstruct(
                 ev,
-                rig,
+                cal,
                 solver=spec,
                 config=cfg,
                 threshold_on_map=threshold_on_map,

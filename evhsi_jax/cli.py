@@ -144,6 +144,7 @@ def cmd_reconstruct(args):
         return _reconstruct_per_sweep(args)
     if args.max_sweeps is not None or args.restart:
         raise ValueError("--max-sweeps and --restart apply only with --per-sweep")
+    from ._calibration import load_calibration
     from ._cubefile import save_cube
     from ._io import read_events
     from ._reconstruct import reconstruct
@@ -151,18 +152,16 @@ def cmd_reconstruct(args):
 
     out = _out_path(args.out, (".npz",), "--out")
     preview = _out_path(args.preview, (".png",), "--preview") if args.preview else None
-    rig = _load_rig(args.calib)
+    cal = load_calibration(args.calib)
+    rig = cal.rig
     events = read_events(args.events)
     if len(events) == 0:
         raise ValueError(f"{args.events} holds no events")
-    thr_on, thr_off = rig.load_threshold_maps(events.height, events.width)
     t0 = time.perf_counter()
     cube, info = reconstruct(
         events,
-        rig,
+        cal,
         solver=args.solver,
-        threshold_on_map=thr_on,
-        threshold_off_map=thr_off,
         t_start_us=args.t_start_us,
         progress=not args.quiet,
         return_info=True,
@@ -204,6 +203,7 @@ def _mesh(devices):
 
 
 def _reconstruct_per_sweep(args):
+    from ._calibration import load_calibration
     from ._io import EventReader
     from ._stream import reconstruct_sweeps
 
@@ -214,16 +214,15 @@ def _reconstruct_per_sweep(args):
         raise ValueError("with --per-sweep the preview is DIR/preview.gif")
     if args.t_start_us is not None:
         raise ValueError("--t-start-us does not apply to --per-sweep")
-    rig = _load_rig(args.calib)
+    cal = load_calibration(args.calib)
+    rig = cal.rig
     reader = EventReader(args.events)  # geometry only; the events are streamed
-    thr_on, thr_off = rig.load_threshold_maps(reader.height, reader.width)
+    cal.check_size(reader.height, reader.width)
     res = reconstruct_sweeps(
         args.events,
-        rig,
+        cal,
         out,
         solver=args.solver,
-        threshold_on_map=thr_on,
-        threshold_off_map=thr_off,
         max_sweeps=args.max_sweeps,
         low_event_rel=args.low_events,
         mesh=_mesh(args.devices),
@@ -330,6 +329,14 @@ def cmd_calibrate(args):
             f"{'per-pixel maps':18s} {'':>12s} ON sd {res.threshold_on_map.std():.4f}, "
             f"OFF sd {res.threshold_off_map.std():.4f} -> {cfg['threshold_map']}"
         )
+    fx = rig.effects
+    print(
+        f"{'sensor noise':18s} {'':>12s} per-crossing threshold "
+        f"{fx.threshold_noise:.4f} log, timestamp jitter {fx.timestamp_jitter_us:.2f} "
+        f"µs, background {rig.noise_rate_hz:.2f} Hz/px, "
+        f"{int(res.hot_pixels.sum())} hot pixel(s), {res.outlier_pixels} chart "
+        "pixel(s) dropped as outliers"
+    )
     print(cfg["comment"])
     print(f"wrote {out}")
     return 0

@@ -171,9 +171,9 @@ def test_cli_calibrate_writes_a_file_reconstruct_reads(tmp_path, capture):
     assert out.returncode == 0, out.stderr
     cfg = json.loads((tmp_path / "c.json").read_text())
     assert cfg["threshold_map"] == "c_thresholds.npz"
-    rig = ev.Rig.load(tmp_path / "c.json")
-    on, off = rig.load_threshold_maps(H, W)
-    assert on.shape == (H, W)
+    cal = ev.load_calibration(tmp_path / "c.json")
+    on = cal.threshold_on
+    assert on.shape == (H, W) and cal.hot_pixels.shape == (H, W)
     assert (
         np.sqrt(np.mean((on - info.threshold_on) ** 2)) < 0.2 * info.threshold_on.std()
     )

@@ -18,12 +18,13 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
+from .._calibration import Calibration
 from .._events import EventStream
 from .._illumination import band_table
 from .._rig import Rig
 from . import _solvers
 from ._pixels import group_pixels
-from ._problem import ProblemConfig, pixel_system
+from ._problem import ProblemConfig, lit_interval_us, pixel_system, system_from_rows
 
 __all__ = ["SolverSpec", "SOLVERS", "reconstruct", "ReconstructionInfo", "solver_spec"]
 
@@ -88,6 +89,8 @@ class ReconstructionInfo:
     solved: np.ndarray  # True where a QP was solved
     t_start_us: int
     sweeps: int
+    hot_pixels: np.ndarray | None = None  # hot pixels (filled from neighbours)
+    dropped_events: int = 0  # events outside the lit intervals or of hot pixels
 
 
 def _no_event_answer(rig: Rig, m: int) -> float:
@@ -112,14 +115,60 @@ def _solve_chunk(
     thr_off,
     phase,
     sweeps: int,
+    noise=None,
 ):
     """Assemble and solve a chunk of pixels; returns x (n, M) and KKT residuals.
-    `phase` is a scalar or one value per pixel."""
+    `phase` is a scalar or one value per pixel; `noise` the sensor noise model of
+    :func:`pixel_system` (then the robust reweighting of `cfg.robust_steps` runs)."""
 
     def system(t, p, mk, off, con, coff, ph):
         return pixel_system(rig, table, cfg, t, p, mk, off, con, coff, ph, sweeps)[:2]
 
+    def solve_qp(q_mat, q_vec):
+        if spec.name == "active-set":
+            x, kkt, _ = _solvers.active_set_batch(
+                q_mat, q_vec, tol=spec.tol, max_iters=spec.iters
+            )
+            return x, kkt
+        x = jax.vmap(lambda a, b: spec.solve(a, b, None))(q_mat, q_vec)
+        return x, jax.vmap(_solvers.kkt_residual)(q_mat, q_vec, x)
+
+    def robust_batch(args):
+        def rows_of(t, p, mk, off, con, coff, ph):
+            return pixel_system(
+                rig, table, cfg, t, p, mk, off, con, coff, ph, sweeps,
+                noise=noise, return_rows=True,
+            )  # fmt: skip
+
+        rows = jax.vmap(rows_of)(*args)
+        q_mat, q_vec, _ = jax.vmap(lambda r: system_from_rows(cfg, r))(rows)
+        x, kkt = solve_qp(q_mat, q_vec)
+        for _ in range(cfg.robust_steps):
+            # Iteratively reweighted least squares with Huber weights: rows whose
+            # residual exceeds c standard deviations (a noise event, a missed or
+            # extra crossing) count linearly instead of quadratically.
+            xa = jnp.concatenate([x, jnp.ones_like(x[:, :1])], axis=1)
+            # Residuals in standard deviations of their rows, measured against the larger
+            # of that and the pixel's own typical residual (1.4826 × median |z| over
+            # its events), so a model error shared by all its rows is not an outlier.
+            z = jnp.einsum("bkm,bm->bk", rows.events, xa) / rows.sigma
+            mk = args[2]
+            med = jnp.nanmedian(jnp.where(mk, jnp.abs(z), jnp.nan), axis=1)
+            scale = jnp.maximum(1.4826 * jnp.nan_to_num(med), 1.0)
+            z = z / scale[:, None]
+            big = (jnp.abs(z) > cfg.robust_c) & mk
+            u = jnp.where(big, jnp.sqrt(cfg.robust_c / jnp.abs(z)), 1.0)
+
+            def resolve(u=u):
+                qm, qv, _ = jax.vmap(lambda r, w: system_from_rows(cfg, r, w))(rows, u)
+                return solve_qp(qm, qv)
+
+            x, kkt = jax.lax.cond(jnp.any(big), resolve, lambda x=x, k=kkt: (x, k))
+        return x, kkt
+
     def one_batch(args):
+        if noise is not None and spec.name not in ("svd", "unconstrained"):
+            return robust_batch(args)
         q_mat, q_vec = jax.vmap(system)(*args)
         if spec.name == "active-set":
             x, kkt, _ = _solvers.active_set_batch(
@@ -157,6 +206,7 @@ def _solve_robust(
     thr_off,
     phase,
     sweeps: int,
+    noise=None,
 ):
     """The exact active-set solution pixel by pixel (`lax.map`), with Cholesky
     factorisations retried under a rounding-level shift where they fail
@@ -167,7 +217,7 @@ def _solve_robust(
     def one(args):
         t, p, mk, off, con, coff, ph = args
         q_mat, q_vec = pixel_system(
-            rig, table, cfg, t, p, mk, off, con, coff, ph, sweeps
+            rig, table, cfg, t, p, mk, off, con, coff, ph, sweeps, noise=noise
         )[:2]
         x = _solvers.active_set(q_mat, q_vec, iters=iters, robust=True)
         return x, _solvers.kkt_residual(q_mat, q_vec, x)
@@ -186,9 +236,32 @@ def _augmented_gram(rig, table, cfg, t, p, mk, off, con, coff, phase, sweeps):
     return q_mat
 
 
+#: Below these, a sensor counts as ideal: its rows are as accurate as the ideal
+#: simulator's after calibration (RMS residual ~0.002 thresholds = 3e-4 log), and the
+#: ideal problem (every event an exact constraint) is the more accurate one.
+MATERIAL_THRESHOLD_NOISE = 0.002  # log units
+MATERIAL_JITTER_US = 1.0
+
+
+def noise_model(rig: Rig) -> np.ndarray | None:
+    """The sensor noise model `[σ_C, σ_t, d_w]` of :func:`pixel_system` from the rig's
+    sensor keys, or `None` for a sensor that is ideal within what a calibration can
+    tell (σ_C < 0.002 log, σ_t < 1 µs and no photoreceptor low-pass)."""
+    fx = rig.effects
+    d_w = 1e6 / (2 * np.pi * fx.photoreceptor_hz) if fx.photoreceptor_hz > 0 else 0.0
+    material = (
+        fx.threshold_noise >= MATERIAL_THRESHOLD_NOISE
+        or fx.timestamp_jitter_us >= MATERIAL_JITTER_US
+        or d_w > 0
+    )
+    if not material:
+        return None
+    return np.array([fx.threshold_noise, fx.timestamp_jitter_us, d_w])
+
+
 def reconstruct(
     events: EventStream,
-    rig: Rig,
+    calibration: Calibration | Rig,
     *,
     solver: str | SolverSpec = "auto",
     config: ProblemConfig | None = None,
@@ -207,7 +280,11 @@ def reconstruct(
     **Arguments:**
 
     - `events`: the recording (one or more sweeps of a static scene).
-    - `rig`: the calibration (thresholds, β, τx, c, FWHM, D, E…).
+    - `calibration`: a :class:`Calibration` (:func:`evhsi_jax.load_calibration`): its
+      rig, per-pixel thresholds, hot-pixel map and sensor noise are all used. A bare
+      :class:`Rig` means global thresholds and the noise its sensor keys give (none by
+      default); a rig loaded from a calibration file that names per-pixel maps is
+      refused (load the file with `load_calibration`).
     - `solver`: a name from `SOLVERS`, `"auto"`, or a :class:`SolverSpec`.
     - `config`: the per-pixel problem's weights (:class:`ProblemConfig`).
     - `threshold_on_map`, `threshold_off_map`: optional per-pixel thresholds `(H, W)`
@@ -239,9 +316,26 @@ def reconstruct(
     factorisations; one still non-finite after that (or from `svd`/`unconstrained`)
     gets the no-event answer and KKT = inf.
     """
+    if isinstance(calibration, Calibration):
+        cal = calibration
+    elif isinstance(calibration, Rig):
+        if calibration.threshold_map is not None:
+            raise ValueError(
+                "this rig names per-pixel threshold maps "
+                f"({calibration.threshold_map}) that reconstruct would ignore: load the "
+                "file with evhsi_jax.load_calibration(path) and pass that"
+            )
+        cal = Calibration(calibration)
+    else:
+        raise TypeError("calibration must be a Calibration or a Rig")
+    rig = cal.rig
     spec = solver_spec(solver)
     cfg = config or ProblemConfig()
     h, w = events.height, events.width
+    cal.check_size(h, w)
+    if threshold_on_map is None and cal.threshold_on is not None:
+        threshold_on_map, threshold_off_map = cal.threshold_on, cal.threshold_off
+    noise = noise_model(rig)
     m = rig.channels
     offsets_all = np.asarray(rig.column_offsets(w), np.float64)
     if t_start_us is None:
@@ -262,12 +356,20 @@ def reconstruct(
         solve, n_dev = functools.partial(solve_chunk_sharded, mesh), mesh.devices.size
         sub = sub_batch_for(mesh, sub)
     chunk = sub * math.ceil(chunk_pixels / sub)
+    screened, hot, n_dropped = screen_events(
+        events, rig, t_start_us, noise, sweeps, cal.hot_pixels
+    )
     batches, counts, _ = group_pixels(
-        events, t_start_us=t_start_us, chunk_pixels=chunk * n_dev, min_chunk=sub * n_dev
+        screened,
+        t_start_us=t_start_us,
+        chunk_pixels=chunk * n_dev,
+        min_chunk=sub * n_dev,
     )
     lead = _reference_lead_us(reference_us, t_start_us, period, h, w)
     dtype = rig.fwhm_nm.dtype  # float32 or float64: the rig decides
     table = band_table(rig).channels(rig.grid.sub)
+    noise_j = None if noise is None else jnp.asarray(noise, dtype)
+    krig = rig.without_host_settings()
     thr_on = (
         np.full(h * w, float(rig.threshold_on))
         if threshold_on_map is None
@@ -301,7 +403,7 @@ def reconstruct(
             jnp.asarray(thr_off[pix], dtype),
             jnp.asarray(-d, dtype),
         )
-        x, kkt = solve(rig, table, cfg, spec, sub, *args, sweeps)
+        x, kkt = solve(krig, table, cfg, spec, sub, *args, sweeps, noise_j)
         x, kkt = np.asarray(x), np.asarray(kkt)
         failed = valid & ~np.all(np.isfinite(x), axis=1)
         if failed.any() and spec.name not in ("svd", "unconstrained"):
@@ -311,7 +413,13 @@ def reconstruct(
             n_pad = 1 << int(math.ceil(math.log2(idx.size)))  # few compiled sizes
             sel = np.concatenate([idx, np.full(n_pad - idx.size, idx[0])])
             xr, kr = _solve_robust(
-                rig, table, cfg, max(spec.iters, 48), *(a[sel] for a in args), sweeps
+                krig,
+                table,
+                cfg,
+                max(spec.iters, 48),
+                *(a[sel] for a in args),
+                sweeps,
+                noise_j,
             )
             x[idx], kkt[idx] = np.asarray(xr)[: idx.size], np.asarray(kr)[: idx.size]
         cube[b.pixel[valid]] = x[valid]
@@ -324,7 +432,9 @@ def reconstruct(
         kkt_all[np.any(bad, axis=1)] = np.inf
     if rig.channel_gain is not None:  # white-reference response correction
         cube = cube / np.asarray(rig.channel_gain, np.float32)
-    cube = cube.reshape(h, w, m)
+    if hot.any():  # hot pixels carry no light information: fill from neighbours
+        cube = _fill_from_neighbours(cube.reshape(h, w, m), hot, counts.reshape(h, w))
+    cube = np.clip(cube, 0.0, cfg.max_reflectance).reshape(h, w, m)
     if not return_info:
         return cube
     info = ReconstructionInfo(
@@ -333,8 +443,69 @@ def reconstruct(
         solved=(counts > 0).reshape(h, w),
         t_start_us=t_start_us,
         sweeps=sweeps,
+        hot_pixels=hot,
+        dropped_events=n_dropped,
     )
     return cube, info
+
+
+def screen_events(
+    events, rig, t_start_us, noise, sweeps, hot_map=None, *, margin_us=None
+):
+    """Drop events no light change can have caused, and find hot pixels.
+
+    The band touches column x only during its lit interval of each sweep (the band
+    centre within 2 FWHM of the channel range, :func:`lit_interval_us`). An event
+    outside that interval, widened by a margin for the photoreceptor's lag at the
+    baseline light, timing jitter and calibration error (200 µs + 5 σ_t +
+    $d_w/c$), is background activity or a hot pixel's: dropped. A pixel with on
+    average ≥ 2 such events per sweep (and ≥ 2 in all) is hot — background activity
+    of even 10 Hz gives ~0.1 per sweep — and so is every pixel of `hot_map`; hot
+    pixels' events are all dropped and their spectra filled in from neighbours.
+
+    **Returns:** `(events, hot, dropped)` — the kept events, the hot-pixel mask
+    `(H, W)` and the number of events dropped.
+    """
+    h, w = events.height, events.width
+    hot = np.zeros(h * w, bool) if hot_map is None else hot_map.reshape(-1).copy()
+    if len(events) == 0:
+        return events, hot.reshape(h, w), 0
+    period = float(rig.period_us)
+    offs = np.asarray(rig.column_offsets(w), np.float64)
+    u_arr, u_lv = (np.asarray(v, np.float64) for v in lit_interval_us(rig, offs))
+    sig_t = 0.0 if noise is None else float(noise[1])
+    d_base = 0.0 if noise is None else float(noise[2]) / float(rig.baseline_rel + 1e-3)
+    margin = 200.0 + 5.0 * sig_t + min(d_base, 5000.0)
+    if margin_us is not None:
+        margin = max(margin, float(margin_us))
+    x = events.x.astype(np.int64)
+    local = np.mod(events.t_us.astype(np.float64) - t_start_us, period)
+    lo, hi = u_arr[x] - margin, u_lv[x] + margin
+    # The interval may wrap around the period (local times are taken modulo P).
+    inside = ((local >= lo) & (local <= hi)) | ((local + period >= lo) & (local + period <= hi)) | ((local - period >= lo) & (local - period <= hi))  # noqa: E501
+    pix = events.y.astype(np.int64) * w + x
+    outside = np.bincount(pix[~inside], minlength=h * w)
+    hot |= (outside >= 2) & (outside >= 2 * sweeps)
+    keep = inside & ~hot[pix]
+    dropped = int(keep.size - keep.sum())
+    if dropped:
+        events = events.take(keep)
+    return events, hot.reshape(h, w), dropped
+
+
+def _fill_from_neighbours(cube, hot, counts):
+    """Each hot pixel's spectrum: the median of its 8 neighbours that are neither hot
+    nor without events (or of all solved pixels when none is)."""
+    h, w, m = cube.shape
+    good = ~hot & (counts > 0)
+    out = cube.copy()
+    for y, x in zip(*np.nonzero(hot)):
+        ys, xs = slice(max(y - 1, 0), y + 2), slice(max(x - 1, 0), x + 2)
+        nb = cube[ys, xs][good[ys, xs]]
+        if nb.size == 0:
+            nb = cube[good] if good.any() else cube.reshape(-1, m)
+        out[y, x] = np.median(nb, axis=0)
+    return out
 
 
 def _reference_lead_us(reference_us, t_start_us, period, h, w) -> np.ndarray:

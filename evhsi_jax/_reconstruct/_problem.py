@@ -52,6 +52,7 @@ Everything is written for one pixel and vmapped.
 from __future__ import annotations
 
 import dataclasses
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -61,7 +62,13 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from .._illumination import BandTable, lookup
 from .._rig import Rig
 
-__all__ = ["ProblemConfig", "spectral_prior_matrix", "pixel_system"]
+__all__ = [
+    "ProblemConfig",
+    "PixelRows",
+    "spectral_prior_matrix",
+    "pixel_system",
+    "system_from_rows",
+]
 
 
 INT_TARGETS = ("linear", "peak", "flat", "flat-peak")
@@ -92,6 +99,22 @@ class ProblemConfig:
     - `lookup_order`: interpolation of the A(λc) table, 1 (linear, fast) or 3 (cubic,
       continuous derivative — used when the reconstruction is differentiated with
       respect to β, τx or λ0).
+    - `noise_floor`: σ₀ (log units), the residual level at which an event row keeps
+      weight 1 when a sensor noise model is given (see :func:`pixel_system`); the
+      priors' weights above were tuned with rows of about this accuracy.
+    - `alpha_dark`: weight of a first-difference prior on channels the rig barely
+      lights (weight ∝ peak light / channel light − 1, times the mean share
+      $v_k/(q_k + v_k)$ of the event rows' variance that is sensor noise), used with
+      a noise model only.
+      `noise_floor` and `alpha_dark` were chosen on the training scene `tcs` with
+      per-crossing threshold noise 0.01 (README "Sensor model"), never on the
+      evaluation scenes.
+    - `robust_steps`: reweighting passes (Huber weights on the event rows) after the
+      first solve when a noise model is given; 0 turns the robust loss off.
+    - `robust_c`: Huber threshold in standard deviations of a row.
+    - `max_reflectance`: the reconstructed cube is clipped to [0, this] (a
+      non-fluorescent surface reflects at most 1; the margin covers calibration gain
+      errors and surfaces brighter than the white reference).
     """
 
     alpha_int: float = 1e-5
@@ -105,6 +128,11 @@ class ProblemConfig:
     ridge: float = 1e-9
     spec_kind: str = "d2"
     lookup_order: int = 1
+    noise_floor: float = 3e-4
+    alpha_dark: float = 1e-6
+    robust_steps: int = 2
+    robust_c: float = 4.0
+    max_reflectance: float = 1.5
 
     def __post_init__(self):
         if self.int_target not in INT_TARGETS:
@@ -121,6 +149,10 @@ class ProblemConfig:
             raise ValueError(f"spec_kind must be 'dct' or 'd2', got {self.spec_kind!r}")
         if not 0 < self.m_start_frac <= 1:
             raise ValueError("m_start_frac must be in (0, 1]")
+        if self.noise_floor <= 0 or self.robust_c <= 0 or self.robust_steps < 0:
+            raise ValueError("noise_floor and robust_c must be > 0, robust_steps >= 0")
+        if not self.max_reflectance > 0:
+            raise ValueError("max_reflectance must be > 0")
 
 
 def spectral_prior_matrix(m: int, m_start_frac: float, kind: str = "dct") -> np.ndarray:
@@ -149,12 +181,6 @@ def spectral_prior_matrix(m: int, m_start_frac: float, kind: str = "dct") -> np.
     raise ValueError(f"unknown spectral prior kind {kind!r}")
 
 
-def _peak_b(peak_height: float) -> float:
-    # h(s) = -s + b s(1-s) peaks at (b-1)^2 / (4b) = p  ⇒  b = 1+2p + sqrt((1+2p)^2 - 1).
-    u = 1.0 + 2.0 * peak_height
-    return u + np.sqrt(u * u - 1.0)
-
-
 def lit_interval_us(rig: Rig, column_offset_us):
     """Local times (within a sweep) at which the band starts and stops touching the
     channel range (band centre at channel start − 2 FWHM and stop + 2 FWHM)."""
@@ -181,6 +207,8 @@ def pixel_system(
     *,
     return_gram: bool = False,
     event_scale: Float[ArrayLike, " k"] | None = None,
+    noise: Float[ArrayLike, " 3"] | None = None,
+    return_rows: bool = False,
 ):
     """Assemble one pixel's $Q$ (M×M) and $q$ (M) with objective $x^TQx + 2q^Tx$.
 
@@ -201,6 +229,20 @@ def pixel_system(
     - `event_scale`: optional factor per event row (default 1; the square root of a
       row weight), e.g. the smooth existence weights of marginal events in design
       studies (`evhsi_jax._design`).
+    - `noise`: the sensor's noise model `[σ_C, σ_t, d_w]` — per-crossing threshold
+      noise (log units), timestamp jitter (µs) and the photoreceptor's delay at a
+      white pixel's peak intensity, $d_w = 1/(2π f_c)$ (µs; 0: instantaneous) — or
+      `None` for the ideal sensor (every event an exact constraint, as before).
+      With a model, (1) each event time is moved back by the low-pass delay at its
+      level, $d_w / \hat I_k$ (a first-order low-pass lags a ramp by its time
+      constant), and (2) each event row is weighted by
+      $\\sqrt{(σ_0^2 + q_k)/(σ_0^2 + q_k + v_k)}$, $v_k = σ_C^2 + 2σ_t^2 s_k^2$ the
+      variance the sensor noise adds to its log residual — a threshold error enters
+      as itself, a timing error through the log-intensity's slope
+      $s_k ≈ C/(τ_k - ρ_k)$ at both ends of the gap — and $q_k = s_k^2/6$ that of
+      the timestamps' rounding (1/12 µs² at each end): an ideal sensor's rows keep
+      weight 1. $σ_0$ = `cfg.noise_floor`.
+    - `return_rows`: return the weighted rows instead (see :func:`system_from_rows`).
 
     **Returns:** `(Q, q, scale)` — shapes `(M, M)`, `(M,)`, and the brightness
     estimate $\\hat s$ used by the spectral prior.
@@ -226,6 +268,17 @@ def pixel_system(
 
     u_arr, u_lv = lit_interval_us(rig, column_offset_us)
     sweep_of = jnp.floor((t_us + t0_phase_us) / period)
+    new_sweep = jnp.concatenate([jnp.array([True]), sweep_of[1:] != sweep_of[:-1]])
+    prev_sgn = jnp.concatenate([jnp.zeros((1,), dtype), sgn[:-1]])
+    if noise is not None:
+        noise = jnp.asarray(noise, dtype)
+        # Photoreceptor lag: each event fired when the low-passed level crossed, about
+        # one time constant d_w / I after the level itself did. I from the events.
+        lvl0 = log_c1 + _sweep_cumsum(step, new_sweep, k)
+        delay = jnp.minimum(noise[2] * jnp.exp(-lvl0), 5000.0)
+        t_us = jnp.where(mask, t_us - delay, t_us)
+        t_us = jax.lax.cummax(jnp.where(mask, t_us, -jnp.inf))
+        t_us = jnp.where(mask, t_us, 0.0)
 
     # Reference (release) times: the recording start for the first event, τ_{k-1} + η.
     # t_rel[i] is the release before event i; t_rel[k] the one after the last slot.
@@ -237,20 +290,13 @@ def pixel_system(
     # baseline at each sweep (the band is off the pixel between sweeps).
     # On a monotone flank the level also moves during each refractory period, by about
     # the step times η / (gap after it): add that drift (release mode only).
-    new_sweep = jnp.concatenate([jnp.array([True]), sweep_of[1:] != sweep_of[:-1]])
-    prev_sgn = jnp.concatenate([jnp.zeros((1,), dtype), sgn[:-1]])
     gap = jnp.maximum(t_us - t_ref, 1.0)
     drift = jnp.where(
         (prev_sgn == sgn) & ~new_sweep & (rig.reset_mode == "release"),
         step * jnp.minimum(eta / gap, 3.0),
         0.0,
     )
-    seg = jnp.cumsum(new_sweep) - 1
-    cum = jnp.cumsum(step + drift)
-    base = jax.ops.segment_min(
-        jnp.where(new_sweep, cum - step, jnp.inf), seg, num_segments=k
-    )
-    level = log_c1 + cum - base[seg]
+    level = log_c1 + _sweep_cumsum(step + drift, new_sweep, k)
     drift_next = jnp.concatenate([drift[1:], jnp.zeros((1,), dtype)])
     i_hat = jnp.exp(level)
     s_hat = jnp.maximum(jnp.max(jnp.where(mask, i_hat, c1)) - c1, 1e-3 * c1)
@@ -259,6 +305,17 @@ def pixel_system(
     w_ev = jnp.where(mask, 1.0 / i_hat if norm else 1.0, 0.0)
     if event_scale is not None:
         w_ev = w_ev * event_scale
+    sigma_ev = jnp.full_like(w_ev, cfg.noise_floor)
+    if noise is not None:
+        slope = jnp.abs(step) / gap
+        ideal = cfg.noise_floor**2 + slope**2 / 6.0  # floor + timestamp rounding
+        var = noise[0] ** 2 + 2.0 * noise[1] ** 2 * slope**2
+        w_ev = w_ev * jnp.sqrt(ideal / (ideal + var))
+        sigma_ev = jnp.sqrt(ideal)
+        # How much of the rows' information the noise took (0 ideal, → 1 noisy).
+        noisy = jnp.sum(jnp.where(mask, var / (ideal + var), 0.0)) / jnp.maximum(
+            jnp.sum(mask), 1
+        )
     ev_rows = (
         jnp.concatenate(
             [a_ev - ratio[:, None] * a_ref, (c1 * (1.0 - ratio))[:, None]], axis=1
@@ -339,10 +396,63 @@ def pixel_system(
         w_int = w_int / i_tgt
     int_rows = jnp.concatenate([int_x, int_c[:, None]], axis=1) * w_int[:, None]
 
-    rows = jnp.concatenate([ev_rows, int_rows], axis=0)
-    gram = rows.T @ rows
-    spec_np = spectral_prior_matrix(m, cfg.m_start_frac, cfg.spec_kind)
     spec_w = cfg.alpha_spec / (s_hat**2 if norm else 1.0)
+    if noise is not None and cfg.alpha_dark > 0:
+        # Channels the rig barely lights carry little data; with noisy rows their
+        # values would follow the noise. Tie each to its neighbour with a weight that
+        # grows as the channel's light falls (0 for a fully lit channel) and with the
+        # share of the rows' information the noise took (0 for an ideal sensor).
+        light = jnp.max(table.values, axis=0)
+        dim = jnp.minimum(jnp.max(light) / jnp.maximum(light, 1e-12) - 1.0, 1e4)
+        d1 = jnp.eye(m, dtype=dtype)[1:] - jnp.eye(m, dtype=dtype)[:-1]
+        wd = jnp.sqrt(cfg.alpha_dark * noisy * 0.5 * (dim[1:] + dim[:-1])) / s_hat
+        int_rows = jnp.concatenate(
+            [int_rows, jnp.pad(d1 * wd[:, None], ((0, 0), (0, 1)))], axis=0
+        )
+    if return_rows:
+        return PixelRows(ev_rows, int_rows, spec_w, s_hat, sigma_ev)
+    rows = jnp.concatenate([ev_rows, int_rows], axis=0)
+    return _system(cfg, m, rows.T @ rows, spec_w, s_hat, return_gram)
+
+
+class PixelRows(NamedTuple):
+    """One pixel's weighted least-squares rows (for reweighting without re-assembly).
+
+    `events` `(k, M+1)` and `drift` `(g, M+1)` act on $[x; 1]$; `spec_weight` is the
+    spectral prior's weight; `sigma` `(k,)` each event row's ideal-sensor deviation (log
+    units) before its noise weight: a weighted row's residual divided by it is the
+    residual in standard deviations."""
+
+    events: Array
+    drift: Array
+    spec_weight: Array
+    s_hat: Array
+    sigma: Array
+
+
+def system_from_rows(cfg: ProblemConfig, rows: PixelRows, row_weight=None):
+    """$(Q, q)$ of :func:`pixel_system` from its rows, the event rows scaled by
+    `row_weight` `(k,)` (e.g. robust-loss weights; default 1)."""
+    ev = rows.events if row_weight is None else rows.events * row_weight[:, None]
+    gram = ev.T @ ev + rows.drift.T @ rows.drift
+    m = gram.shape[0] - 1
+    return _system(cfg, m, gram, rows.spec_weight, rows.s_hat, False)
+
+
+def _sweep_cumsum(step, new_sweep, k):
+    """Cumulative sum of the log steps, restarted at 0 at the start of each sweep
+    (the level before each sweep's first event is the baseline)."""
+    seg = jnp.cumsum(new_sweep) - 1
+    cum = jnp.cumsum(step)
+    base = jax.ops.segment_min(
+        jnp.where(new_sweep, cum - step, jnp.inf), seg, num_segments=k
+    )
+    return cum - base[seg]
+
+
+def _system(cfg, m, gram, spec_w, s_hat, return_gram):
+    dtype = gram.dtype
+    spec_np = spectral_prior_matrix(m, cfg.m_start_frac, cfg.spec_kind)
     # Traces without materialising a sum of two (M, M) matrices per pixel.
     trace = jnp.sum(jnp.diagonal(gram)[:m]) + spec_w * float(np.trace(spec_np))
     ridge = cfg.ridge * (trace / m + 1e-30)
@@ -350,34 +460,3 @@ def pixel_system(
     if return_gram:
         return gram.at[:m, :m].add(prior), gram[:m, m], s_hat
     return gram[:m, :m] + prior, gram[:m, m], s_hat
-
-
-def batch_system(
-    rig,
-    table,
-    cfg,
-    t_us,
-    polarity,
-    mask,
-    column_offset_us,
-    threshold_on,
-    threshold_off,
-    t0_phase_us,
-    sweeps,
-):
-    """:func:`pixel_system` over a batch of pixels (leading axis), tables shared."""
-    return jax.vmap(
-        pixel_system, in_axes=(None, None, None, 0, 0, 0, 0, 0, 0, None, None)
-    )(
-        rig,
-        table,
-        cfg,
-        t_us,
-        polarity,
-        mask,
-        column_offset_us,
-        threshold_on,
-        threshold_off,
-        t0_phase_us,
-        sweeps,
-    )

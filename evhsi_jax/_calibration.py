@@ -1,0 +1,141 @@
+"""A calibration: the rig plus everything measured per pixel, as one object and one file
+pair.
+
+`evhsi calibrate` writes `CALIB.json` (every rig key, the sensor noise it measured in the
+rig's sensor keys, and a `calibration` report) and a sibling `CALIB_thresholds.npz`
+(per-pixel `threshold_on`, `threshold_off`, `hot_pixels`) that the JSON names under
+`threshold_map`. :func:`load_calibration` reads both; :func:`evhsi_jax.reconstruct`
+takes the result and uses all of it — the same cube as `evhsi reconstruct --calib`.
+A plain :class:`Rig` has no per-pixel maps; one loaded from a calibration file that
+names maps is refused by `reconstruct` (it would silently lose them).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ._events import atomic_write
+from ._rig import Rig
+
+__all__ = ["Calibration", "load_calibration"]
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Calibration:
+    """A rig with the per-pixel maps and sensor noise a calibration measured.
+
+    **Fields:**
+
+    - `rig`: the fitted rig; its sensor keys (`threshold_noise`,
+      `timestamp_jitter_us`, `photoreceptor_hz`, `noise_rate_hz`) hold the noise the
+      calibration measured, which the reconstruction weights its rows with.
+    - `threshold_on`, `threshold_off`: per-pixel thresholds `(H, W)`, log units, or
+      `None` (the rig's global pair everywhere).
+    - `hot_pixels`: `(H, W)` bool, pixels that fire without light, or `None`.
+    - `report`: what the calibration measured and how well the fit went (JSON-able).
+    """
+
+    rig: Rig
+    threshold_on: np.ndarray | None = None
+    threshold_off: np.ndarray | None = None
+    hot_pixels: np.ndarray | None = None
+    report: dict = dataclasses.field(default_factory=dict)
+
+    def __post_init__(self):
+        if (self.threshold_on is None) != (self.threshold_off is None):
+            raise ValueError("give both threshold maps or neither")
+        shape = None
+        for name in ("threshold_on", "threshold_off", "hot_pixels"):
+            a = getattr(self, name)
+            if a is None:
+                continue
+            a = np.asarray(a, bool if name == "hot_pixels" else np.float64)
+            if a.ndim != 2 or (shape is not None and a.shape != shape):
+                raise ValueError(f"{name} map must be (H, W) like the others")
+            if name != "hot_pixels" and (not np.all(np.isfinite(a)) or np.any(a <= 0)):
+                raise ValueError(f"{name} map must be finite and > 0")
+            shape = a.shape
+            object.__setattr__(self, name, a)
+
+    @property
+    def shape(self) -> tuple[int, int] | None:
+        """`(H, W)` of the maps, or `None` without maps."""
+        for a in (self.threshold_on, self.hot_pixels):
+            if a is not None:
+                return a.shape
+        return None
+
+    def check_size(self, height: int, width: int) -> None:
+        if self.shape is not None and self.shape != (height, width):
+            raise ValueError(
+                f"the calibration's per-pixel maps are {self.shape[0]}x{self.shape[1]}, "
+                f"the recording is {height}x{width}"
+            )
+
+    def save(self, path: str | os.PathLike) -> dict:
+        """Write `path` (JSON) and, if there are maps, `<stem>_thresholds.npz` beside
+        it; both atomic. Returns the JSON object written."""
+        path = Path(path)
+        cfg: dict[str, Any] = self.rig.to_dict()
+        cfg["threshold_map"] = None
+        if self.shape is not None:
+            map_path = path.with_name(path.stem + "_thresholds.npz")
+            arrays = {}
+            if self.threshold_on is not None:
+                arrays["threshold_on"] = self.threshold_on
+                arrays["threshold_off"] = self.threshold_off
+            if self.hot_pixels is not None:
+                arrays["hot_pixels"] = self.hot_pixels
+            atomic_write(map_path, lambda f: np.savez(f, **arrays))
+            cfg["threshold_map"] = map_path.name
+        if self.report:
+            cfg["calibration"] = self.report
+            if "comment" in self.report:
+                cfg["comment"] = self.report["comment"]
+        text = json.dumps(cfg, indent=2) + "\n"
+        atomic_write(path, lambda f: f.write(text.encode()))
+        return cfg
+
+
+def load_calibration(path: str | os.PathLike) -> Calibration:
+    """Read a calibration (or plain rig) JSON file and the per-pixel maps it names.
+
+    Any rig key left out takes its default, so a one-key file is a valid calibration
+    (global thresholds, no maps)."""
+    path = Path(path)
+    rig = Rig.load(path)
+    try:
+        report = json.loads(path.read_text()).get("calibration") or {}
+    except AttributeError:
+        report = {}
+    on = off = hot = None
+    if rig.threshold_map is not None:
+        mpath = Path(rig.threshold_map)
+        if not mpath.is_file():
+            raise ValueError(f"{path}: threshold map file not found: {mpath}")
+        try:
+            with np.load(mpath, allow_pickle=False) as data:
+                keys = set(data.files)
+                if {"threshold_on", "threshold_off"} <= keys:
+                    on = np.asarray(data["threshold_on"], np.float64)
+                    off = np.asarray(data["threshold_off"], np.float64)
+                if "hot_pixels" in keys:
+                    hot = np.asarray(data["hot_pixels"], bool)
+        except (OSError, ValueError, EOFError) as err:
+            raise ValueError(f"{mpath} is not a readable .npz map file: {err}") from None
+        if on is None and hot is None:
+            raise ValueError(
+                f"{mpath} holds neither threshold_on/threshold_off nor hot_pixels"
+            )
+    try:
+        return Calibration(
+            rig.replace_static(threshold_map=None), on, off, hot, report
+        )
+    except ValueError as err:
+        raise ValueError(f"{path}: {err}") from None
