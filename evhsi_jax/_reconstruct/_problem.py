@@ -234,7 +234,7 @@ def pixel_system(
       white pixel's peak intensity, $d_w = 1/(2π f_c)$ (µs; 0: instantaneous) — or
       `None` for the ideal sensor (every event an exact constraint, as before).
       With a model, (1) each event time is moved back by the low-pass delay at its
-      level, $d_w / \hat I_k$ (a first-order low-pass lags a ramp by its time
+      level, $d_w / \\hat I_k$ (a first-order low-pass lags a ramp by its time
       constant), and (2) each event row is weighted by
       $\\sqrt{(σ_0^2 + q_k)/(σ_0^2 + q_k + v_k)}$, $v_k = σ_C^2 + 2σ_t^2 s_k^2$ the
       variance the sensor noise adds to its log residual — a threshold error enters
@@ -313,9 +313,8 @@ def pixel_system(
         w_ev = w_ev * jnp.sqrt(ideal / (ideal + var))
         sigma_ev = jnp.sqrt(ideal)
         # How much of the rows' information the noise took (0 ideal, → 1 noisy).
-        noisy = jnp.sum(jnp.where(mask, var / (ideal + var), 0.0)) / jnp.maximum(
-            jnp.sum(mask), 1
-        )
+        n_ev = jnp.maximum(jnp.sum(mask), 1).astype(dtype)
+        noisy = jnp.sum(jnp.where(mask, var / (ideal + var), 0.0)) / n_ev
     ev_rows = (
         jnp.concatenate(
             [a_ev - ratio[:, None] * a_ref, (c1 * (1.0 - ratio))[:, None]], axis=1

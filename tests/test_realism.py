@@ -1,0 +1,252 @@
+"""Real sensor effects: the simulator's effects do what physics says, the calibration
+measures the noise it was given, the noise-aware reconstruction and its contracts."""
+
+import hashlib
+import json
+import subprocess
+import sys
+
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
+import pytest
+
+import evhsi_jax as ev
+from evhsi_jax._reconstruct import ProblemConfig, group_pixels, pixel_system
+from evhsi_jax._sensor import exact_events_scan, photoreceptor_lowpass
+from evhsi_jax._simulate import threshold_maps
+
+H, W = 16, 24
+
+
+def _digest(e):
+    cols = (np.ascontiguousarray(getattr(e, k)).tobytes() for k in ("x", "y", "p", "t_us"))
+    return hashlib.sha1(b"".join(cols)).hexdigest()
+
+
+def test_effects_off_is_the_ideal_simulator_bit_for_bit():
+    # Digest of the simulator before the effects existed (commit 1408b40), same call.
+    e = ev.simulate(ev.load_scene("colorchecker", (H, W)), ev.Rig(), sweeps=2, key=jr.key(3))
+    assert len(e) == 21170
+    assert _digest(e) == "bf0cb575d673c9f3de8242fca51e187bf0e6e0af"
+
+
+@pytest.fixture(scope="module")
+def ideal_capture():
+    sc = ev.load_scene("colorchecker", (H, W))
+    return sc, ev.simulate(sc, ev.Rig(), sweeps=2, key=jr.key(5), return_info=True)
+
+
+def _sim(sc, **kw):
+    return ev.simulate(sc, ev.Rig(**kw), sweeps=2, key=jr.key(5), return_info=True)
+
+
+def test_hot_pixels_fire_steadily(ideal_capture):
+    sc, (e0, _) = ideal_capture
+    e, info = _sim(sc, hot_pixel_fraction=0.01, hot_pixel_rate_hz=2000.0)
+    hot = info.hot_pixels
+    assert hot.sum() == round(0.01 * H * W)
+    pix = e.y.astype(int) * W + e.x
+    counts = np.bincount(pix, minlength=H * W).reshape(H, W)
+    expected = 2000.0 * 2 / 30.0  # rate × duration
+    extra = counts[hot] - np.bincount(
+        e0.y.astype(int) * W + e0.x, minlength=H * W
+    ).reshape(H, W)[hot]
+    assert np.all(np.abs(extra - expected) < 5 * np.sqrt(expected))
+    # Uniform in time: the hot pixels' events fill both sweeps evenly, dark parts too.
+    t = e.t_us[np.isin(pix, np.flatnonzero(hot.ravel()))]
+    hist = np.histogram(t, bins=8, range=(0, 2e6 / 30))[0]
+    assert hist.min() > 0.5 * hist.mean()
+
+
+def test_background_events_are_uniform_in_time(ideal_capture):
+    sc, (e0, _) = ideal_capture
+    e, info = _sim(sc, noise_rate_hz=300.0)
+    assert len(e) - len(e0) == info.noise_events > 0
+    extra = np.setdiff1d(np.arange(len(e)), [])  # all events
+    t = e.t_us[extra]
+    # The dark tail of each sweep (last 8 % of the period) only has noise events.
+    local = np.mod(t, 1e6 / 30) / (1e6 / 30)
+    n_dark = np.sum(local > 0.92)
+    expect = info.noise_events * 0.08
+    assert abs(n_dark - expect) < 5 * np.sqrt(expect)
+
+
+def test_lowpass_delays_and_smooths():
+    t = np.arange(400, dtype=np.float32) * 5.0  # µs
+    x = jnp.asarray(np.log(0.03 + np.clip((t - 500) / 500, 0, 1) * 0.97), jnp.float32)
+    y = np.asarray(photoreceptor_lowpass(x[:, None], 5.0, 3000.0, 1e-5))[:, 0]
+    x = np.asarray(x)
+    assert np.all(y[1:] >= y[:-1] - 1e-6)  # monotone input stays monotone
+    assert np.all(y <= x + 1e-6)  # a rising input is followed from below (lag)
+    # Crossing of the mid level happens later, and the lag is longer when darker.
+    mid = 0.5 * (x[0] + x[-1])
+    assert np.argmax(y >= mid) > np.argmax(x >= mid)
+    # A bright step settles with time constant 1/(2π f I): ~53 µs at white.
+    step = jnp.asarray(np.where(t < 500, np.log(0.5), 0.0), jnp.float32)[:, None]
+    ys = np.asarray(photoreceptor_lowpass(step, 5.0, 3000.0, 1e-5))[:, 0]
+    k = int(np.argmax(ys > np.log(0.5) * np.exp(-1))) * 5.0 - 500
+    assert 30 < k < 110
+
+
+def test_lowpass_capture_lags(ideal_capture):
+    sc, (e0, _) = ideal_capture
+    e, _ = _sim(sc, photoreceptor_hz=3000.0)
+    first = lambda ev_: np.median([ev_.t_us[(ev_.x == x) & (ev_.p == 1)].min() for x in range(W)])  # noqa: E731
+    assert first(e) > first(e0) + 50  # µs later
+
+
+def test_per_crossing_threshold_noise_spreads_event_spacing():
+    # A log ramp: ideal events every C/slope; with per-crossing noise the spacings
+    # spread with sd σ/slope (reset noise of σ at each release).
+    n, p = 4000, 256
+    t = jnp.arange(n, dtype=jnp.float32) * 1.0
+    log_i = jnp.broadcast_to((t * 1e-3)[:, None], (n, p))
+    thr = jnp.full((p,), 0.15)
+    sigma = 0.01
+    noise = sigma * jr.normal(jr.key(0), (n - 1, p))
+    (fired, tc, _), _ = exact_events_scan(
+        log_i, t, thr, thr, jnp.asarray(1.0), reference_noise=noise
+    )
+    fired, tc = np.asarray(fired), np.asarray(tc)
+    gaps = np.concatenate([np.diff(tc[fired[:, j], j]) for j in range(p)])
+    # gap = η + (C + ε)/slope - η... the release reset makes the gap (C+ε)/slope + η.
+    assert abs(np.mean(gaps) - (150.0 + 1.0)) < 1.0
+    assert abs(np.std(gaps) / (sigma / 1e-3) - 1.0) < 0.1
+
+
+def test_on_off_threshold_correlation():
+    rig = ev.Rig(threshold_sigma=0.01, on_off_correlation=0.3)
+    on, off = threshold_maps(rig, 100, 100, key=jr.key(2))
+    r = np.corrcoef(on.ravel(), off.ravel())[0, 1]
+    assert abs(r - 0.3) < 0.05
+    same_on, same_off = threshold_maps(ev.Rig(), 10, 10, key=jr.key(2))
+    assert np.array_equal(same_on, same_off)
+
+
+def test_jitter_and_latency_shift_times(ideal_capture):
+    sc, (e0, _) = ideal_capture
+    e, _ = _sim(sc, timestamp_jitter_us=4.0, latency_us=30.0)
+    assert len(e) == len(e0)
+    d = np.sort(e.t_us).astype(float) - np.sort(e0.t_us).astype(float)
+    assert abs(np.mean(d) - 30.0) < 1.0
+
+
+def test_sweep_curvature_and_band_profile():
+    rig = ev.Rig(sweep_curvature_nm=3.0)
+    lin = ev.Rig()
+    speed = float(lin.beta_nm_per_rad * lin.omega_rad_per_us)
+    t_mid = (580.0 - float(lin.sweep_start_nm)) / speed
+    assert abs(float(rig.band_centre_nm(t_mid, 0.0)) - 583.0) < 1e-3
+    t_end = (400.0 - float(lin.sweep_start_nm)) / speed
+    assert abs(float(rig.band_centre_nm(t_end, 0.0)) - 400.0) < 1e-3
+    sk = ev.Rig(band_profile="skewed")
+    off = np.asarray(sk.band_profile[0])
+    val = np.asarray(sk.band_profile[1])
+    above = off[val >= 0.5]
+    assert abs((above[-1] - above[0]) - 17.5) < 0.5  # same FWHM
+    assert np.sum(val * off) / np.sum(val) > 1.0  # skewed to the red
+    with pytest.raises(ValueError, match="band_profile"):
+        ev.Rig(band_profile={"offset_nm": [0, 1], "values": [1, 1]})
+
+
+def test_realistic_preset_resolves_and_round_trips():
+    rig = ev.Rig.from_dict({"sensor": "realistic", "threshold_noise": 0.02})
+    assert rig.effects.threshold_noise == 0.02  # explicit keys win
+    assert rig.effects.photoreceptor_hz == 10000.0
+    again = ev.Rig.from_dict(rig.to_dict())
+    assert again.effects == rig.effects and again.band_profile == rig.band_profile
+    with pytest.raises(ValueError, match="sensor"):
+        ev.Rig.from_dict({"sensor": "nope"})
+
+
+def test_noise_weights_match_a_numpy_reference():
+    rig = ev.Rig()
+    from evhsi_jax._illumination import band_table
+
+    table = band_table(rig).channels(rig.grid.sub)
+    e = ev.simulate(ev.load_scene("colorchecker", (4, 6)), rig, key=jr.key(1))
+    b = group_pixels(e, chunk_pixels=24)[0][0]
+    i = int(np.argmax(b.count))
+    k = b.t_us.shape[1]
+    t = jnp.asarray(b.t_us[i], jnp.float32)
+    pol = jnp.asarray(b.polarity[i], jnp.int32)
+    mk = jnp.asarray(b.mask[i])
+    off = float(rig.column_offsets(6)[b.column[i]])
+    cfg = ProblemConfig()
+    sig_c, sig_t = 0.01, 3.0
+    args = (rig, table, cfg, t, pol, mk, off, 0.15, 0.15, 0.0, 1)
+    rows = pixel_system(*args, noise=jnp.asarray([sig_c, sig_t, 0.0]), return_rows=True)
+    plain = pixel_system(*args, return_rows=True)
+    # NumPy: slope = C / (t_k - ρ_k), ρ_k = t_{k-1} + η (0 for the first event).
+    tt = np.asarray(b.t_us[i], np.float64)
+    ref = np.concatenate([[0.0], tt[:-1] + 50.0])
+    slope = 0.15 / np.maximum(tt - ref, 1.0)
+    ideal = cfg.noise_floor**2 + slope**2 / 6
+    w = np.sqrt(ideal / (ideal + sig_c**2 + 2 * sig_t**2 * slope**2))
+    w = np.where(b.mask[i], w, 0.0)
+    got = np.asarray(rows.events)
+    want = np.asarray(plain.events) * w[:, None]
+    assert k >= int(b.count[i]) > 5
+    np.testing.assert_allclose(got, want, rtol=2e-4, atol=1e-7)
+
+
+def test_calibration_measures_noise_and_hot_pixels():
+    chart = ev.load_scene("gray-chart", (24, 48))
+    true = ev.Rig(threshold_noise=0.01, hot_pixel_fraction=0.004, noise_rate_hz=2.0)
+    events, info = ev.simulate(chart, true, sweeps=2, key=jr.key(4), return_info=True)
+    res = ev.calibrate(events, chart, ev.Rig())
+    assert abs(res.rig.effects.threshold_noise / 0.01 - 1.0) < 0.2
+    assert np.array_equal(res.hot_pixels, info.hot_pixels)
+    assert 1.0 < res.rig.noise_rate_hz < 3.0
+    assert res.converged
+
+
+@pytest.fixture(scope="module")
+def realistic_files(tmp_path_factory):
+    d = tmp_path_factory.mktemp("real")
+    (d / "rig.json").write_text(json.dumps({"sensor": "realistic"}))
+    evhsi = [sys.executable, "-m", "evhsi_jax.cli"]
+    for scene, name, sweeps in (("gray-chart", "gray", 2), ("colorchecker", "cc", 1)):
+        subprocess.run(
+            [*evhsi, "simulate", "--scene", scene, "--size", "24x36", "--sweeps",
+             str(sweeps), "--rig", str(d / "rig.json"), "--seed", "3", "--quiet",
+             "--out", str(d / f"{name}.npz"), "--truth", str(d / f"{name}_t.npz")],
+            check=True, capture_output=True,
+        )  # fmt: skip
+    (d / "init.json").write_text(json.dumps({"photoreceptor_hz": 10000.0}))
+    subprocess.run(
+        [*evhsi, "calibrate", str(d / "gray.npz"), "--init", str(d / "init.json"),
+         "--out", str(d / "cal.json")],
+        check=True, capture_output=True,
+    )  # fmt: skip
+    subprocess.run(
+        [*evhsi, "reconstruct", str(d / "cc.npz"), "--calib", str(d / "cal.json"),
+         "--out", str(d / "cube.npz"), "--quiet"],
+        check=True, capture_output=True,
+    )  # fmt: skip
+    return d
+
+
+def test_python_and_cli_reconstruct_the_same_cube(realistic_files):
+    d = realistic_files
+    cal = ev.load_calibration(d / "cal.json")
+    assert cal.threshold_on is not None and cal.hot_pixels is not None
+    assert cal.rig.effects.threshold_noise > 0
+    cube = ev.reconstruct(ev.read_events(d / "cc.npz"), cal)
+    np.testing.assert_array_equal(cube, np.load(d / "cube.npz")["cube"])
+    assert cube.min() >= 0.0 and cube.max() <= 1.5
+    with pytest.raises(ValueError, match="load_calibration"):
+        ev.reconstruct(ev.read_events(d / "cc.npz"), ev.Rig.load(d / "cal.json"))
+
+
+def test_calibrating_a_scene_that_is_not_the_chart_exits_2(realistic_files, tmp_path):
+    d = realistic_files
+    r = subprocess.run(
+        [sys.executable, "-m", "evhsi_jax.cli", "calibrate", str(d / "cc.npz"),
+         "--out", str(tmp_path / "x.json")],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert r.returncode == 2, r.stderr
+    assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "x.json").exists()
