@@ -115,6 +115,22 @@ def test_no_recompilation_on_second_call(capture):
     assert _solve_chunk._cached._cache_size() == before
 
 
+def test_host_only_settings_do_not_recompile(capture):
+    # Seeds, simulation spreads and rates, the gain and the sensor's noise values are
+    # host-side settings or dynamic arrays: changing them must not key the jit cache.
+    rig, _, events, _ = capture
+    noisy = ev.Rig(threshold_noise=0.01)
+    ev.reconstruct(events, noisy)
+    before = _solve_chunk._cached._cache_size()
+    for r in (
+        ev.Rig(threshold_noise=0.02, timestamp_jitter_us=3.0, seed=5),
+        ev.Rig(threshold_noise=0.01, noise_rate_hz=2.0, threshold_sigma=0.03),
+        ev.Rig(threshold_noise=0.01, hot_pixel_fraction=0.01, channel_gain=[1.1] * 72),
+    ):
+        ev.reconstruct(events, r)
+    assert _solve_chunk._cached._cache_size() == before
+
+
 def test_buckets_follow_each_pixels_event_count(capture):
     _, _, events, _ = capture
     batches, counts, _ = group_pixels(
