@@ -73,6 +73,7 @@ __all__ = [
 ]
 
 TAU_SCALE_US = 100.0  # τx parameter unit in the solver
+CURV_SCALE_NM = 1.0  # sweep-curvature parameter unit in the solver
 SMOOTH_WEIGHT = 0.02  # residual weight of one µs of τx second difference
 
 
@@ -320,23 +321,19 @@ def _apply(params, base: Rig, basis=None) -> Rig:
         resp = base.camera_response * jnp.exp(
             params["resp"] @ jnp.asarray(basis, base.fwhm_nm.dtype)
         )
-        base = eqx.tree_at(lambda r: r.camera_response, base, resp / jnp.max(resp))
-    return eqx.tree_at(
-        lambda r: (
-            r.threshold_on,
-            r.threshold_off,
-            r.beta_nm_per_rad,
-            r.baseline_rel,
-            r.column_offsets_us,
-        ),
-        base,
-        (
-            base.threshold_on * jnp.exp(params["log_on"]),
-            base.threshold_off * jnp.exp(params["log_off"]),
-            base.beta_nm_per_rad * jnp.exp(params["log_beta"]),
-            base.baseline_rel * jnp.exp(params["log_c"]),
-            base.column_offsets_us + TAU_SCALE_US * params["tau"],
-        ),
+        base = base.with_leaves(camera_response=resp / jnp.max(resp))
+    extra = {}
+    if "curv" in params:
+        extra["sweep_curvature_nm"] = base.sweep_curvature_nm + CURV_SCALE_NM * params[
+            "curv"
+        ]
+    return base.with_leaves(
+        threshold_on=base.threshold_on * jnp.exp(params["log_on"]),
+        threshold_off=base.threshold_off * jnp.exp(params["log_off"]),
+        beta_nm_per_rad=base.beta_nm_per_rad * jnp.exp(params["log_beta"]),
+        baseline_rel=base.baseline_rel * jnp.exp(params["log_c"]),
+        column_offsets_us=base.column_offsets_us + TAU_SCALE_US * params["tau"],
+        **extra,
     )
 
 
@@ -551,6 +548,7 @@ def _calibrate64(
     fit_baseline: bool = True,
     from_data: bool = True,
     response_degree: int = 4,
+    fit_curvature: bool = True,
     verbose: bool = False,
 ) -> CalibrationResult:
     """Fit thresholds, β, c and per-column τx to a chart capture (then per-pixel maps).
@@ -568,6 +566,9 @@ def _calibrate64(
       $D(λ) \\exp(\\sum_{j=1}^{n} w_j P_j)$ (Legendre polynomials over the channel range):
       a gray chart sees D·E through the shape of its intensity traces, so a wrong D would
       otherwise bias everything else. 0 keeps D.
+    - `fit_curvature`: fit the sweep's parabolic non-linearity `sweep_curvature_nm`
+      (the band's entry and exit anchor the ends; the lamp's and camera's spectral
+      structure inside the range places the middle).
 
     **Returns:** a :class:`CalibrationResult`.
     """
@@ -634,6 +635,7 @@ def _calibrate64(
         "log_off": jnp.zeros((), dtype),
         "log_beta": jnp.zeros((), dtype),
         "log_c": jnp.zeros((), dtype),
+        **({"curv": jnp.zeros((), dtype)} if fit_curvature else {}),
         "tau": jnp.zeros((w,), dtype),
         "resp": jnp.zeros((response_degree,), dtype),
     }
@@ -671,7 +673,9 @@ def _calibrate64(
 
     zero_t = jax.tree.map(jnp.zeros_like, p0)
     scale = {}
-    for k in ("log_on", "log_off", "log_beta", "log_c"):
+    for k in ("log_on", "log_off", "log_beta", "log_c") + (
+        ("curv",) if fit_curvature else ()
+    ):
         scale[k] = jnp.linalg.norm(jcol({**zero_t, k: jnp.ones((), dtype)}))
     scale["resp"] = (
         jnp.stack(
@@ -860,7 +864,9 @@ def threshold_maps_from_chart(
     Each event's model log step $d_k = \\log I(τ_k) - \\log I(ρ_k)$ is computed from the
     known reflectance; a pixel's $C_{on}$ is the mean of $d_k$ over its ON events and
     $C_{off}$ the mean of $-d_k$ over its OFF events (the least-squares solution of its
-    residuals). Pixels without ON (OFF) events get the rig's global value.
+    residuals). Pixels without ON (OFF) events get the rig's global value, and so do
+    pixels whose RMS residual with their own thresholds is an outlier (> 2× the median
+    and > median + 8 robust σ): their events do not follow the chart's model.
 
     **Returns:** `(threshold_on, threshold_off)` maps, each `(H, W)`.
     """
@@ -868,8 +874,20 @@ def threshold_maps_from_chart(
     on = np.full(h * w, float(rig.threshold_on))
     off = np.full(h * w, float(rig.threshold_off))
     data = chart_data(events, chart, rig, t_start_us=t_start_us, rows_per_label=None)
-    c_on, c_off = _closed_form_thresholds(_log_steps(rig, data), data)
-    good_on, good_off = np.isfinite(c_on), np.isfinite(c_off)
+    steps = _log_steps(rig, data)
+    c_on, c_off = _closed_form_thresholds(steps, data)
+    # A pixel whose events its own thresholds cannot explain does not see the chart
+    # the model assumes (a patch border blurred by the optics, dirt, a defect): its
+    # thresholds would be biased, so it keeps the global pair.
+    c_px = np.where(data.polarity > 0, c_on[:, None], c_off[:, None])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = np.where(data.mask, steps / c_px - data.polarity, np.nan)
+        rms_px = np.sqrt(np.nanmean(r**2, axis=1))
+    med = np.nanmedian(rms_px)
+    mad = np.nanmedian(np.abs(rms_px - med))
+    misfit = rms_px > max(2.0 * med, med + 8.0 * 1.4826 * mad, 0.02)
+    good_on = np.isfinite(c_on) & ~misfit
+    good_off = np.isfinite(c_off) & ~misfit
     on[data.pixel[good_on]] = c_on[good_on]
     off[data.pixel[good_off]] = c_off[good_off]
     return on.reshape(h, w), off.reshape(h, w)

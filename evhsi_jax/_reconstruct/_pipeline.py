@@ -241,18 +241,23 @@ def _augmented_gram(rig, table, cfg, t, p, mk, off, con, coff, phase, sweeps):
 #: ideal problem (every event an exact constraint) is the more accurate one.
 MATERIAL_THRESHOLD_NOISE = 0.002  # log units
 MATERIAL_JITTER_US = 1.0
+#: Background activity from this rate on puts noise events inside the lit intervals
+#: (~1 % of the pixels per sweep at 0.5 Hz): the robust reweighting is then needed.
+MATERIAL_BACKGROUND_HZ = 0.05
 
 
 def noise_model(rig: Rig) -> np.ndarray | None:
     """The sensor noise model `[σ_C, σ_t, d_w]` of :func:`pixel_system` from the rig's
     sensor keys, or `None` for a sensor that is ideal within what a calibration can
-    tell (σ_C < 0.002 log, σ_t < 1 µs and no photoreceptor low-pass)."""
+    tell (σ_C < 0.002 log, σ_t < 1 µs, no photoreceptor low-pass and background
+    activity below 0.05 Hz per pixel)."""
     fx = rig.effects
     d_w = 1e6 / (2 * np.pi * fx.photoreceptor_hz) if fx.photoreceptor_hz > 0 else 0.0
     material = (
         fx.threshold_noise >= MATERIAL_THRESHOLD_NOISE
         or fx.timestamp_jitter_us >= MATERIAL_JITTER_US
         or d_w > 0
+        or rig.noise_rate_hz >= MATERIAL_BACKGROUND_HZ
     )
     if not material:
         return None
