@@ -235,15 +235,34 @@ def chart_log_steps(rig: Rig, data, traces=None):
         return jnp.log(jnp.maximum(a, 0.0) + c1)
 
     hz = rig.effects.photoreceptor_hz
-    if hz > 0:  # a known photoreceptor low-pass: events lag the level by d_w / I
-        d_w = 1e6 / (2.0 * np.pi * hz)
-        plain = level
+    if hz > 0:  # a known photoreceptor low-pass: the events see the filtered level
+        ftab = _lowpassed_traces(rig, traces, 1e6 / (2.0 * np.pi * hz))
 
         def level(tt):
-            delay = jnp.minimum(d_w * jnp.exp(-plain(tt)), 5000.0)
-            return plain(tt - delay)
+            return lookup(
+                ftab, rig.band_centre_nm(tt, offsets), order=3, column=s_idx[:, None]
+            )
 
     return jnp.where(m, level(t) - level(t_ref), 0.0)
+
+
+def _lowpassed_traces(rig: Rig, traces: BandTable, d_w_us: float) -> BandTable:
+    """The chart spectra's log-intensity traces through the photoreceptor low-pass
+    (:func:`evhsi_jax.forward.photoreceptor_lowpass`), tabulated over λc like the
+    traces: time and λc are proportional along the sweep (one table step is
+    `step / (βω)` µs), so the filter runs along the table. Exact for the chart (its
+    spectra are known); differentiable in the rig."""
+    speed = rig.beta_nm_per_rad * rig.omega_rad_per_us
+    dt = traces.step_nm / speed
+    inten = jnp.maximum(traces.values, 0.0) + rig.baseline_rel
+    log_i = jnp.log(inten + rig.log_eps)
+    alpha = jnp.exp(-dt * inten / d_w_us).at[0].set(0.0)
+
+    def combine(left, right):
+        return left[0] * right[0], right[0] * left[1] + right[1]
+
+    _, filt = jax.lax.associative_scan(combine, (alpha, (1.0 - alpha) * log_i), axis=0)
+    return BandTable(filt, traces.lo_nm, traces.step_nm)
 
 
 def chart_residuals(rig: Rig, data, traces=None, *, per_pixel: bool = False):

@@ -134,15 +134,25 @@ def _solve_chunk(
         return x, jax.vmap(_solvers.kkt_residual)(q_mat, q_vec, x)
 
     def robust_batch(args):
-        def rows_of(t, p, mk, off, con, coff, ph):
+        def rows_of(t, p, mk, off, con, coff, ph, x0=None):
             return pixel_system(
                 rig, table, cfg, t, p, mk, off, con, coff, ph, sweeps,
-                noise=noise, return_rows=True,
+                noise=noise, return_rows=True, x0=x0,
             )  # fmt: skip
 
         rows = jax.vmap(rows_of)(*args)
         q_mat, q_vec, _ = jax.vmap(lambda r: system_from_rows(cfg, r))(rows)
         x, kkt = solve_qp(q_mat, q_vec)
+        for _ in range(cfg.lowpass_passes if sweeps <= 4 else 0):
+            # A photoreceptor low-pass: relinearise its model at the current answer.
+            def relinearise(rows=rows, x=x):
+                new = jax.vmap(rows_of)(*args, x)
+                qm, qv, _ = jax.vmap(lambda r: system_from_rows(cfg, r))(new)
+                return (new, *solve_qp(qm, qv))
+
+            rows, x, kkt = jax.lax.cond(
+                noise[2] > 0, relinearise, lambda r=rows, x=x, k=kkt: (r, x, k)
+            )
         for _ in range(cfg.robust_steps):
             # Iteratively reweighted least squares with Huber weights: rows whose
             # residual exceeds c standard deviations (a noise event, a missed or
@@ -461,9 +471,9 @@ def screen_events(
 
     The band touches column x only during its lit interval of each sweep (the band
     centre within 2 FWHM of the channel range, :func:`lit_interval_us`). An event
-    outside that interval, widened by a margin for the photoreceptor's lag at the
-    baseline light, timing jitter and calibration error (200 µs + 5 σ_t +
-    $d_w/c$), is background activity or a hot pixel's: dropped. A pixel with on
+    outside that interval, widened by a margin for the photoreceptor's settling at
+    the baseline light, timing jitter and calibration error (200 µs + 5 σ_t +
+    $3 d_w/c$, at most 5 ms for the lag), is background activity or a hot pixel's: dropped. A pixel with on
     average ≥ 2 such events per sweep (and ≥ 2 in all) is hot — background activity
     of even 10 Hz gives ~0.1 per sweep — and so is every pixel of `hot_map`; hot
     pixels' events are all dropped and their spectra filled in from neighbours.
@@ -480,7 +490,7 @@ def screen_events(
     u_arr, u_lv = (np.asarray(v, np.float64) for v in lit_interval_us(rig, offs))
     sig_t = 0.0 if noise is None else float(noise[1])
     d_base = 0.0 if noise is None else float(noise[2]) / float(rig.baseline_rel + 1e-3)
-    margin = 200.0 + 5.0 * sig_t + min(d_base, 5000.0)
+    margin = 200.0 + 5.0 * sig_t + min(3.0 * d_base, 5000.0)
     if margin_us is not None:
         margin = max(margin, float(margin_us))
     x = events.x.astype(np.int64)

@@ -111,6 +111,10 @@ class ProblemConfig:
       evaluation scenes.
     - `robust_steps`: reweighting passes (Huber weights on the event rows) after the
       first solve when a noise model is given; 0 turns the robust loss off.
+    - `lowpass_passes`: Gauss–Newton passes of the linearised photoreceptor model
+      (`x0` of :func:`pixel_system`) after the first, delay-shifted solve, when the
+      noise model has a low-pass and the recording spans ≤ 4 sweeps (the model's
+      time grid grows with the sweeps); 0: the delay shift alone.
     - `robust_c`: Huber threshold in standard deviations of a row.
     - `max_reflectance`: the reconstructed cube is clipped to [0, this] (a
       non-fluorescent surface reflects at most 1; the margin covers calibration gain
@@ -131,6 +135,7 @@ class ProblemConfig:
     noise_floor: float = 3e-4
     alpha_dark: float = 1e-6
     robust_steps: int = 2
+    lowpass_passes: int = 1
     robust_c: float = 4.0
     max_reflectance: float = 1.5
 
@@ -209,6 +214,7 @@ def pixel_system(
     event_scale: Float[ArrayLike, " k"] | None = None,
     noise: Float[ArrayLike, " 3"] | None = None,
     return_rows: bool = False,
+    x0: Float[ArrayLike, " m"] | None = None,
 ):
     """Assemble one pixel's $Q$ (M×M) and $q$ (M) with objective $x^TQx + 2q^Tx$.
 
@@ -243,6 +249,10 @@ def pixel_system(
       the timestamps' rounding (1/12 µs² at each end): an ideal sensor's rows keep
       weight 1. $σ_0$ = `cfg.noise_floor`.
     - `return_rows`: return the weighted rows instead (see :func:`system_from_rows`).
+    - `x0`: with a photoreceptor low-pass in `noise`, a previous estimate of the
+      spectrum: the event rows are then the photoreceptor model linearised at `x0`
+      (:func:`_lowpass_rows`) instead of the delay-shifted exact constraints — one
+      Gauss–Newton step of the low-passed sensor model.
 
     **Returns:** `(Q, q, scale)` — shapes `(M, M)`, `(M,)`, and the brightness
     estimate $\\hat s$ used by the spectral prior.
@@ -270,6 +280,7 @@ def pixel_system(
     sweep_of = jnp.floor((t_us + t0_phase_us) / period)
     new_sweep = jnp.concatenate([jnp.array([True]), sweep_of[1:] != sweep_of[:-1]])
     prev_sgn = jnp.concatenate([jnp.zeros((1,), dtype), sgn[:-1]])
+    t_raw = t_us
     if noise is not None:
         noise = jnp.asarray(noise, dtype)
         # Photoreceptor lag: each event fired when the low-passed level crossed, about
@@ -310,7 +321,8 @@ def pixel_system(
         slope = jnp.abs(step) / gap
         ideal = cfg.noise_floor**2 + slope**2 / 6.0  # floor + timestamp rounding
         var = noise[0] ** 2 + 2.0 * noise[1] ** 2 * slope**2
-        w_ev = w_ev * jnp.sqrt(ideal / (ideal + var))
+        w_noise = jnp.sqrt(ideal / (ideal + var))
+        w_ev = w_ev * w_noise
         sigma_ev = jnp.sqrt(ideal)
         # How much of the rows' information the noise took (0 ideal, → 1 noisy).
         n_ev = jnp.maximum(jnp.sum(mask), 1).astype(dtype)
@@ -321,6 +333,15 @@ def pixel_system(
         )
         * w_ev[:, None]
     )
+    if x0 is not None and noise is not None:
+        w_log = jnp.where(mask, w_noise, 0.0)
+        if event_scale is not None:
+            w_log = w_log * event_scale
+        lin = _lowpass_rows(
+            rig, a_at, jnp.asarray(x0, dtype), noise[2], t_raw, step, t0_phase_us,
+            sweeps,
+        )  # fmt: skip
+        ev_rows = lin * w_log[:, None]
 
     # Anti-drift rows on a time grid over each sweep's lit interval (when the band is
     # on the pixel): each grid point lies in the gap between two references, and the
@@ -436,6 +457,51 @@ def system_from_rows(cfg: ProblemConfig, rows: PixelRows, row_weight=None):
     gram = ev.T @ ev + rows.drift.T @ rows.drift
     m = gram.shape[0] - 1
     return _system(cfg, m, gram, rows.spec_weight, rows.s_hat, False)
+
+
+def _lowpass_rows(rig, a_at, x0, d_w, t_us, step, t0_phase_us, sweeps):
+    """Event rows of the low-passed sensor, linearised at `x0`, in log units.
+
+    The photoreceptor output obeys $y_j = α_j y_{j-1} + (1-α_j) L_j$ on the rig's time
+    grid, $L = \log(a\cdot x + c')$, $α_j = \exp(-Δt\,I_j/d_w)$ (the simulator's
+    model, :func:`evhsi_jax.forward.photoreceptor_lowpass`), and event k says
+    $y(τ_k) - y(ρ_k) = σ_k C$. With $α$ and $L$ linearised at $x_0$
+    ($L ≈ L_0 + g\cdot(x - x_0)$, $g = a/(a\cdot x_0 + c')$) the filter acts on
+    $[L_0, g]$, and row k is $[ΔF_g;\ ΔF_{L_0} - ΔF_g\cdot x_0 - σ_k C]$ with $ΔF$ the
+    filtered difference between $τ_k$ and $ρ_k$ (linear interpolation between grid
+    points, as the simulator's crossings).
+    """
+    dtype = x0.dtype
+    n = rig.samples_per_sweep
+    period = rig.period_us
+    dt = period / n
+    g_n = sweeps * n + 1
+    tg = jnp.arange(g_n, dtype=dtype) * dt - t0_phase_us
+    ag = a_at(tg)
+    inten = jnp.maximum(ag @ x0 + rig.baseline_rel, 0.0)
+    lev = inten + rig.log_eps
+    stack = jnp.concatenate([jnp.log(lev)[:, None], ag / lev[:, None]], axis=1)
+    alpha = jnp.exp(-dt * inten / jnp.maximum(d_w, 1e-6)).at[0].set(0.0)
+
+    def combine(left, right):
+        return left[0] * right[0], right[0][:, None] * left[1] + right[1]
+
+    _, filt = jax.lax.associative_scan(
+        combine, (alpha, (1.0 - alpha)[:, None] * stack), axis=0
+    )
+
+    def at(t):
+        pos = jnp.clip((t + t0_phase_us) / dt, 0.0, g_n - 1.0)
+        i = jnp.clip(jnp.floor(pos), 0, g_n - 2)
+        f = (pos - i)[:, None]
+        i = i.astype(jnp.int32)
+        return filt[i] * (1.0 - f) + filt[i + 1] * f
+
+    t_ref = jnp.concatenate([jnp.zeros((1,), dtype), t_us[:-1] + rig.refractory_us])
+    d = at(t_us) - at(t_ref)
+    row_x = d[:, 1:]
+    row_c = d[:, 0] - row_x @ x0 - step
+    return jnp.concatenate([row_x, row_c[:, None]], axis=1)
 
 
 def _sweep_cumsum(step, new_sweep, k):
