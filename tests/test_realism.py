@@ -250,3 +250,47 @@ def test_calibrating_a_scene_that_is_not_the_chart_exits_2(realistic_files, tmp_
     assert r.returncode == 2, r.stderr
     assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "x.json").exists()
+
+
+def test_linearised_lowpass_rows_explain_a_lowpassed_capture():
+    # At the true spectrum the linearised low-pass rows leave residuals far below the
+    # delay-shift rows' (both in log units ≈ relative intensity).
+    rig = ev.Rig(photoreceptor_hz=5000.0, threshold_sigma=0.0)
+    from evhsi_jax._illumination import band_table
+
+    scene = ev.load_scene("colorchecker", (4, 6))
+    e = ev.simulate(scene, rig, key=jr.key(2))
+    table = band_table(rig).channels(rig.grid.sub)
+    truth = scene.truth_cube(rig.grid).reshape(-1, rig.channels)
+    b = group_pixels(e, chunk_pixels=24)[0][0]
+    d_w = 1e6 / (2 * np.pi * 5000.0)
+    res_lin, res_shift = [], []
+    for i in np.flatnonzero(b.count > 8)[:6]:
+        off = float(rig.column_offsets(6)[b.column[i]])
+        args = (
+            rig, table, ProblemConfig(), jnp.asarray(b.t_us[i], jnp.float32),
+            jnp.asarray(b.polarity[i], jnp.int32), jnp.asarray(b.mask[i]), off, 0.15,
+            0.15, 0.0, 1,
+        )  # fmt: skip
+        x = jnp.asarray(truth[b.pixel[i]], jnp.float32)
+        xa = jnp.concatenate([x, jnp.ones(1)])
+        noise = jnp.asarray([0.0, 0.0, d_w])
+        lin = pixel_system(*args, noise=noise, x0=x, return_rows=True)
+        shift = pixel_system(*args, noise=noise, return_rows=True)
+        m = b.mask[i]
+        res_lin.append(np.abs(np.asarray(lin.events @ xa))[m])
+        res_shift.append(np.abs(np.asarray(shift.events @ xa))[m])
+    lin_rms = np.sqrt(np.mean(np.concatenate(res_lin) ** 2))
+    shift_rms = np.sqrt(np.mean(np.concatenate(res_shift) ** 2))
+    assert lin_rms < 0.01  # well below one threshold (0.15)
+    assert lin_rms < 0.5 * shift_rms
+
+
+def test_calibration_fits_curvature_and_a_known_lowpass():
+    chart = ev.load_scene("gray-chart", (24, 32))
+    true = ev.Rig(sweep_curvature_nm=3.0, photoreceptor_hz=10000.0)
+    events = ev.simulate(chart, true, sweeps=2, key=jr.key(6))
+    res = ev.calibrate(events, chart, ev.Rig(photoreceptor_hz=10000.0))
+    assert abs(float(res.rig.sweep_curvature_nm) - 3.0) < 0.5
+    assert res.rms_residual < 0.01  # the low-passed chart is explained exactly
+    assert res.rig.effects.threshold_noise < 0.002

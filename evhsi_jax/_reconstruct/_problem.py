@@ -460,7 +460,7 @@ def system_from_rows(cfg: ProblemConfig, rows: PixelRows, row_weight=None):
 
 
 def _lowpass_rows(rig, a_at, x0, d_w, t_us, step, t0_phase_us, sweeps):
-    """Event rows of the low-passed sensor, linearised at `x0`, in log units.
+    r"""Event rows of the low-passed sensor, linearised at `x0`, in log units.
 
     The photoreceptor output obeys $y_j = α_j y_{j-1} + (1-α_j) L_j$ on the rig's time
     grid, $L = \log(a\cdot x + c')$, $α_j = \exp(-Δt\,I_j/d_w)$ (the simulator's
