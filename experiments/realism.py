@@ -104,7 +104,13 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--quick", action="store_true", help="default magnitudes only")
     ap.add_argument("--out", default="experiments/results/realism.json")
+    ap.add_argument(
+        "--table", metavar="JSON", help="print the markdown table of a finished run"
+    )
     args = ap.parse_args(argv)
+    if args.table:
+        print(markdown(json.loads(Path(args.table).read_text())["rows"]))
+        return
     size = tuple(int(v) for v in args.size.split("x"))
     cases = [("ideal", None, {})]
     for k, mags in EFFECTS.items():
@@ -141,7 +147,28 @@ def main(argv=None):
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=2) + "\n")
     _plot(rows, out.with_suffix(".png"))
+    print(markdown(rows))
     print(f"wrote {out}")
+
+
+def markdown(rows) -> str:
+    """The README's table: old and new SAM / PSNR and the new cube's value range."""
+    lines = [
+        "| effect | magnitude | old SAM° / PSNR dB | new SAM° / PSNR dB | new range |",
+        "|---|---:|---:|---:|---|",
+    ]
+    for r in rows:
+        mag = "" if r["magnitude"] is None else r["magnitude"]
+        if "error" in r:
+            lines.append(f"| {r['effect']} | {mag} | calibration refused | | |")
+            continue
+        o, n = r["old"], r["new"]
+        lines.append(
+            f"| {r['effect']} | {mag} | {o['sam_deg']:.2f} / {o['psnr_db']:.2f} | "
+            f"**{n['sam_deg']:.2f} / {n['psnr_db']:.2f}** | "
+            f"[{n['min']:.2f}, {n['max']:.2f}] |"
+        )
+    return "\n".join(lines)
 
 
 def _plot(rows, path):

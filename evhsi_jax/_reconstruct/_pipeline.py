@@ -473,9 +473,10 @@ def screen_events(
     centre within 2 FWHM of the channel range, :func:`lit_interval_us`). An event
     outside that interval, widened by a margin for the photoreceptor's settling at
     the baseline light, timing jitter and calibration error (200 µs + 5 σ_t +
-    $3 d_w/c$, at most 5 ms for the lag), is background activity or a hot pixel's: dropped. A pixel with on
-    average ≥ 2 such events per sweep (and ≥ 2 in all) is hot — background activity
-    of even 10 Hz gives ~0.1 per sweep — and so is every pixel of `hot_map`; hot
+    $3 d_w/c$, at most 5 ms for the lag), is background activity or a hot pixel's:
+    dropped. A pixel with on average ≥ 2 such events per sweep (and ≥ 2 in all) is
+    hot — background activity of even 10 Hz gives ~0.1 per sweep — and so is every
+    pixel of `hot_map`; hot
     pixels' events are all dropped and their spectra filled in from neighbours.
 
     **Returns:** `(events, hot, dropped)` — the kept events, the hot-pixel mask
