@@ -27,6 +27,7 @@ import json
 import time
 from pathlib import Path
 
+import jax
 import jax.random as jr
 
 import evhsi_jax as ev
@@ -107,6 +108,9 @@ def main(argv=None):
     ap.add_argument(
         "--table", metavar="JSON", help="print the markdown table of a finished run"
     )
+    ap.add_argument(
+        "--only", help="comma-separated effect names to run (e.g. 'realistic preset')"
+    )
     args = ap.parse_args(argv)
     if args.table:
         print(markdown(json.loads(Path(args.table).read_text())["rows"]))
@@ -120,9 +124,15 @@ def main(argv=None):
             cases.append((k, v, {k: v}))
     cases.append(("moderate mix", None, MODERATE_MIX))
     cases.append(("realistic preset", None, {"sensor": "realistic"}))
+    if args.only:
+        wanted = {v.strip() for v in args.only.split(",")}
+        cases = [c for c in cases if c[0] in wanted]
     rows = []
     for name, mag, sensor in cases:
         r = run_case(sensor, size, args.seed)
+        # Each sensor compiles its own programs; a 30-case run in one process ran out
+        # of LLVM code memory without this.
+        jax.clear_caches()
         rows.append({"effect": name, "magnitude": mag, "sensor": sensor, **r})
         if "error" in r:
             print(f"{name:22s} {mag!s:>8s}  calibration refused: {r['error']}")
