@@ -59,6 +59,7 @@ from ._reconstruct._pixels import group_pixels
 from ._reconstruct._problem import lit_interval_us
 from ._rig import Rig
 from ._scenes import Scene
+from ._sensor import photoreceptor_lowpass
 
 __all__ = [
     "ChartData",
@@ -253,15 +254,13 @@ def _lowpassed_traces(rig: Rig, traces: BandTable, d_w_us: float) -> BandTable:
     `step / (βω)` µs), so the filter runs along the table. Exact for the chart (its
     spectra are known); differentiable in the rig."""
     speed = rig.beta_nm_per_rad * rig.omega_rad_per_us
-    dt = traces.step_nm / speed
     inten = jnp.maximum(traces.values, 0.0) + rig.baseline_rel
-    log_i = jnp.log(inten + rig.log_eps)
-    alpha = jnp.exp(-dt * inten / d_w_us).at[0].set(0.0)
-
-    def combine(left, right):
-        return left[0] * right[0], right[0] * left[1] + right[1]
-
-    _, filt = jax.lax.associative_scan(combine, (alpha, (1.0 - alpha) * log_i), axis=0)
+    filt = photoreceptor_lowpass(
+        jnp.log(inten + rig.log_eps),
+        traces.step_nm / speed,
+        1e6 / (2.0 * np.pi * d_w_us),
+        rig.log_eps,
+    )
     return BandTable(filt, traces.lo_nm, traces.step_nm)
 
 
