@@ -237,7 +237,7 @@ def chart_log_steps(rig: Rig, data, traces=None):
 
     hz = rig.effects.photoreceptor_hz
     if hz > 0:  # a known photoreceptor low-pass: the events see the filtered level
-        ftab = _lowpassed_traces(rig, traces, 1e6 / (2.0 * np.pi * hz))
+        ftab = _lowpassed_traces(rig, traces, hz)
 
         def level(tt):
             return lookup(
@@ -247,7 +247,7 @@ def chart_log_steps(rig: Rig, data, traces=None):
     return jnp.where(m, level(t) - level(t_ref), 0.0)
 
 
-def _lowpassed_traces(rig: Rig, traces: BandTable, d_w_us: float) -> BandTable:
+def _lowpassed_traces(rig: Rig, traces: BandTable, cutoff_hz: float) -> BandTable:
     """The chart spectra's log-intensity traces through the photoreceptor low-pass
     (:func:`evhsi_jax.forward.photoreceptor_lowpass`), tabulated over λc like the
     traces: time and λc are proportional along the sweep (one table step is
@@ -258,7 +258,7 @@ def _lowpassed_traces(rig: Rig, traces: BandTable, d_w_us: float) -> BandTable:
     filt = photoreceptor_lowpass(
         jnp.log(inten + rig.log_eps),
         traces.step_nm / speed,
-        1e6 / (2.0 * np.pi * d_w_us),
+        cutoff_hz,
         rig.log_eps,
     )
     return BandTable(filt, traces.lo_nm, traces.step_nm)
