@@ -6,8 +6,12 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 DEMO_OUT ?= out/demo
 PYTEST_ARGS ?=
+# Test processes (pytest-xdist, one module per process so module fixtures are built
+# once): 2 keeps both cores of the reference machine busy; PYTEST_WORKERS=0 runs all
+# in this process.
+PYTEST_WORKERS ?= 2
 
-.PHONY: demo test lint bench clean
+.PHONY: demo test lint bench clean browser
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -22,13 +26,18 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(PY) -m ruff check .
-	$(PY) -m pytest -q $(PYTEST_ARGS)
+	$(PY) -m pytest -q $(if $(filter-out 0,$(PYTEST_WORKERS)),-n $(PYTEST_WORKERS) --dist loadfile) $(PYTEST_ARGS)
 
 lint: $(STAMP)
 	$(PY) -m ruff check .
 
 bench: $(STAMP)
 	$(PY) -m pytest -q -m slow $(PYTEST_ARGS)
+
+# The browser test of `evhsi view` (tests/test_viewer.py) needs Chromium and its
+# WebDriver; it skips with a reason when they are absent. Debian/Ubuntu, as root:
+browser:
+	apt-get install -y chromium chromium-driver
 
 clean:
 	rm -rf $(VENV) out .pytest_cache .ruff_cache

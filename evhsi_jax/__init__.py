@@ -53,6 +53,7 @@ from ._baselines import (
 from ._baselines import (
     training_reflectances as training_reflectances,
 )
+from ._cache import enable_compilation_cache as enable_compilation_cache
 from ._calibrate import (
     CalibrationResult as CalibrationResult,
 )

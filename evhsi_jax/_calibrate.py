@@ -43,6 +43,7 @@ across columns); the normal equations are solved matrix-free (lineax NormalCG), 
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -53,7 +54,7 @@ import optimistix as optx
 
 from ._calibration import Calibration
 from ._events import EventStream
-from ._illumination import BandTable, band_table, lookup
+from ._illumination import BandTable, band_overlap, band_table, lookup
 from ._reconstruct._pipeline import noise_model, screen_events
 from ._reconstruct._pixels import group_pixels
 from ._reconstruct._problem import lit_interval_us
@@ -192,20 +193,27 @@ def chart_data(
     return ChartData(t, p, m, col, px, spectrum.reshape(-1), fine[used], events.width)
 
 
-def spectral_traces(rig: Rig, spectra) -> BandTable:
+def spectral_traces(rig: Rig, spectra, overlap: BandTable | None = None) -> BandTable:
     """Intensity above c of each chart spectrum vs band centre: `(n_λ, S)` table.
 
     The chart's few spectra are known, so their traces over λc are tabulated once (the
     fine band table times each fine reflectance); a residual then needs a 1-D
     interpolation instead of a 360-wide dot product. Differentiable in the rig's FWHM,
-    D and E through the band table.
+    D and E through the band table. `overlap`: the rig's :func:`band_overlap`, when the
+    caller keeps the band fixed and has it already (the joint fit: it is most of the
+    cost otherwise); then D and E are still differentiable, the FWHM is not.
     """
-    table = band_table(rig)
-    return BandTable(
-        table.values @ jnp.asarray(spectra, table.values.dtype).T,
-        table.lo_nm,
-        table.step_nm,
-    )
+    if overlap is None:
+        table = band_table(rig)
+        return BandTable(
+            table.values @ jnp.asarray(spectra, table.values.dtype).T,
+            table.lo_nm,
+            table.step_nm,
+        )
+    weight = rig.camera_response * rig.lamp
+    gain = 1.0 / jnp.max(overlap.values @ weight)
+    weighted = weight[:, None] * jnp.asarray(spectra, overlap.values.dtype).T
+    return BandTable(gain * (overlap.values @ weighted), overlap.lo_nm, overlap.step_nm)
 
 
 def chart_log_steps(rig: Rig, data, traces=None):
@@ -331,6 +339,60 @@ def _response_basis(rig: Rig, degree: int) -> np.ndarray:
     return np.stack(
         [np.polynomial.legendre.Legendre.basis(j)(u) for j in range(1, degree + 1)]
     )
+
+
+class _FitData(eqx.Module):
+    """What the chart-fit residuals read besides the parameters (all arguments, no
+    closures: see `_calibrate64`)."""
+
+    rig: Rig
+    basis: Any
+    dev: Any
+    spectra: Any
+    fixed_traces: Any
+    overlap: Any  # the band's overlap table: the band is not fitted, so computed once
+    fit_baseline: bool = eqx.field(static=True)
+
+
+def _fit_residuals(params, args):
+    """Chart residuals (per event) and the τx smoothness prior of the joint fit."""
+    profile, keep, fit = args
+    r = _apply(params, fit.rig, fit.basis)
+    if not fit.fit_baseline:
+        r = r.with_leaves(baseline_rel=fit.rig.baseline_rel)
+    traces = (
+        fit.fixed_traces
+        if fit.fixed_traces is not None
+        else spectral_traces(r, fit.spectra, fit.overlap)
+    )
+    res = chart_residuals(r, fit.dev, traces, per_pixel=profile)
+    if keep is not None:
+        res = res * keep[:, None]
+    # The prior acts on the absolute offsets (the starting guess may be rough).
+    tau = fit.rig.column_offsets_us + TAU_SCALE_US * params["tau"]
+    smooth = SMOOTH_WEIGHT * (tau[2:] - 2 * tau[1:-1] + tau[:-2])
+    return res.reshape(-1), smooth
+
+
+def _fit_residuals_scaled(u, args):
+    """`_fit_residuals` in the solver's scaled variables u = θ·s."""
+    scale, inner = args
+    return _fit_residuals(jax.tree.map(lambda a, b: a / b, u, scale), inner)
+
+
+_fit_residuals_jit = eqx.filter_jit(_fit_residuals)
+
+
+@eqx.filter_jit
+def _fit_jvp(p0, tangent, fit):
+    return jax.jvp(lambda q: _fit_residuals(q, (False, None, fit))[0], (p0,), (tangent,))[
+        1
+    ]
+
+
+@eqx.filter_jit
+def _fit_sum_sq(params, args):
+    return jnp.sum(_fit_residuals(params, args)[0] ** 2)
 
 
 def _apply(params, base: Rig, basis=None) -> Rig:
@@ -659,24 +721,15 @@ def _calibrate64(
     }
 
     keep = jnp.ones(data.t_us.shape[0], dtype)  # pixels in the fit (outliers: 0)
+    # Everything the residuals read travels as arguments (not closed over), so each
+    # compiled function depends on shapes only: one compilation per shape in a
+    # process, and the persistent cache serves the next process.
+    fit = _FitData(rig, basis, dev, jnp.asarray(data.spectra, dtype), fixed_traces,
+                   band_overlap(rig), fit_baseline)  # fmt: skip
 
     def residuals(params, args):
         profile, keep = args if isinstance(args, tuple) else (args, None)
-        r = _apply(params, rig, basis)
-        if not fit_baseline:
-            r = eqx.tree_at(lambda q: q.baseline_rel, r, rig.baseline_rel)
-        traces = (
-            fixed_traces
-            if fixed_traces is not None
-            else spectral_traces(r, data.spectra)
-        )
-        res = chart_residuals(r, dev, traces, per_pixel=profile)
-        if keep is not None:
-            res = res * keep[:, None]
-        # The prior acts on the absolute offsets (the starting guess may be rough).
-        tau = rig.column_offsets_us + TAU_SCALE_US * params["tau"]
-        smooth = SMOOTH_WEIGHT * (tau[2:] - 2 * tau[1:-1] + tau[:-2])
-        return res.reshape(-1), smooth
+        return _fit_residuals_jit(params, (profile, keep, fit))
 
     # Jacobi scaling by change of variables (u = θ·s, s = column norms of the Jacobian at
     # the start): the Gauss–Newton matrix then has a unit diagonal and is "identity plus
@@ -685,9 +738,8 @@ def _calibrate64(
     # one τx only, so one JVP with all-ones τ tangents gives every column's norm.
     res_col = jnp.broadcast_to(dev[3][:, None], data.t_us.shape).reshape(-1)
 
-    @jax.jit
     def jcol(tangent):
-        return jax.jvp(lambda q: residuals(q, False)[0], (p0,), (tangent,))[1]
+        return _fit_jvp(p0, tangent, fit)
 
     zero_t = jax.tree.map(jnp.zeros_like, p0)
     scale = {}
@@ -717,16 +769,9 @@ def _calibrate64(
     def theta_of(u):
         return jax.tree.map(lambda a, b: a / b, u, scale)
 
-    def residuals_u(u, args):
-        return residuals(theta_of(u), args)
-
-    @eqx.filter_jit
-    def _sum_sq(params, args):
-        return jnp.sum(residuals(params, args)[0] ** 2)
-
     def rms_of(params, profile):
         n = int((data.mask & (np.asarray(keep) > 0)[:, None]).sum())
-        return float(jnp.sqrt(_sum_sq(params, (profile, keep)) / max(n, 1)))
+        return float(jnp.sqrt(_fit_sum_sq(params, (profile, keep, fit)) / max(n, 1)))
 
     r0 = rms_of(p0, False)
     solver = optx.LevenbergMarquardt(
@@ -744,10 +789,10 @@ def _calibrate64(
     outlier_pixels = 0
     for profile in (False, True) if per_pixel else (False,):
         sol = optx.least_squares(
-            residuals_u,
+            _fit_residuals_scaled,
             solver,
             u,
-            args=(profile, keep),
+            args=(scale, (profile, keep, fit)),
             max_steps=max_steps,
             throw=False,
         )

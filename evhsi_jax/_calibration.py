@@ -18,10 +18,11 @@ import os
 from pathlib import Path
 from typing import Any
 
+import jax.numpy as jnp
 import numpy as np
 
-from ._events import atomic_write
 from ._rig import Rig
+from ._storage import atomic_write, read_npz
 
 __all__ = ["Calibration", "load_calibration"]
 
@@ -71,12 +72,41 @@ class Calibration:
                 return a.shape
         return None
 
+    def crop(self, roi: tuple[int, int, int, int], width: int) -> Calibration:
+        """The calibration of the region `roi = (x0, y0, x1, y1)` (half-open, pixels)
+        of a `width`-column sensor: the columns keep their own time offsets, the maps
+        are cut to the region."""
+        import equinox as eqx
+
+        x0, y0, x1, y1 = (int(v) for v in roi)
+        offs = np.asarray(self.rig.column_offsets(width), np.float64)[x0:x1]
+        rig = eqx.tree_at(
+            lambda r: r.column_offsets_us,
+            self.rig,
+            jnp.asarray(offs, self.rig.fwhm_nm.dtype),
+            is_leaf=lambda v: v is None,
+        )
+        cut = lambda a: None if a is None else a[y0:y1, x0:x1]  # noqa: E731
+        return Calibration(
+            rig,
+            cut(self.threshold_on),
+            cut(self.threshold_off),
+            cut(self.hot_pixels),
+            {**self.report, "roi": [x0, y0, x1, y1]},
+        )
+
     def check_size(self, height: int, width: int) -> None:
         if self.shape is not None and self.shape != (height, width):
             raise ValueError(
                 f"the calibration's per-pixel maps are {self.shape[0]}x{self.shape[1]}, "
                 f"the recording is {height}x{width}"
             )
+
+    @staticmethod
+    def maps_path(path: str | os.PathLike) -> Path:
+        """The maps file that :meth:`save` writes beside the JSON `path`."""
+        path = Path(path)
+        return path.with_name(path.stem + "_thresholds.npz")
 
     def save(self, path: str | os.PathLike) -> dict:
         """Write `path` (JSON) and, if there are maps, `<stem>_thresholds.npz` beside
@@ -85,7 +115,7 @@ class Calibration:
         cfg: dict[str, Any] = self.rig.to_dict()
         cfg["threshold_map"] = None
         if self.shape is not None:
-            map_path = path.with_name(path.stem + "_thresholds.npz")
+            map_path = self.maps_path(path)
             arrays = {}
             if self.threshold_on is not None:
                 arrays["threshold_on"] = self.threshold_on
@@ -119,16 +149,15 @@ def load_calibration(path: str | os.PathLike) -> Calibration:
         mpath = Path(rig.threshold_map)
         if not mpath.is_file():
             raise ValueError(f"{path}: threshold map file not found: {mpath}")
+        data = read_npz(mpath, "threshold map file")
         try:
-            with np.load(mpath, allow_pickle=False) as data:
-                keys = set(data.files)
-                if {"threshold_on", "threshold_off"} <= keys:
-                    on = np.asarray(data["threshold_on"], np.float64)
-                    off = np.asarray(data["threshold_off"], np.float64)
-                if "hot_pixels" in keys:
-                    hot = np.asarray(data["hot_pixels"], bool)
-        except (OSError, ValueError, EOFError) as err:
-            raise ValueError(f"{mpath} is not a readable .npz map file: {err}") from None
+            if {"threshold_on", "threshold_off"} <= set(data):
+                on = np.asarray(data["threshold_on"], np.float64)
+                off = np.asarray(data["threshold_off"], np.float64)
+            if "hot_pixels" in data:
+                hot = np.asarray(data["hot_pixels"], bool)
+        except (TypeError, ValueError) as err:
+            raise ValueError(f"{mpath}: maps must be numeric ({err})") from None
         if on is None and hot is None:
             raise ValueError(
                 f"{mpath} holds neither threshold_on/threshold_off nor hot_pixels"

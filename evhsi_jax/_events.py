@@ -10,42 +10,30 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["EventStream", "atomic_write"]
+from ._storage import atomic_write, read_npz, scalar_int
+
+__all__ = ["EventStream", "check_roi"]
 
 
-def atomic_write(path: str | os.PathLike, write) -> None:
-    """Write a file whole or not at all.
-
-    `write(fileobj)` fills a temporary file in the destination folder, which is then
-    renamed over `path`; on any error the temporary file is removed and `path` is left
-    as it was.
-    """
-    path = Path(path)
-    folder = path.parent if str(path.parent) else Path(".")
-    if not folder.is_dir():
-        raise ValueError(f"cannot write {path}: folder {folder} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
+def check_roi(roi, width: int, height: int) -> tuple[int, int, int, int]:
+    """`roi` as `(x0, y0, x1, y1)` ints inside a `width` x `height` sensor, or a
+    `ValueError` saying what is wrong (`x0 < x1 <= width`, `y0 < y1 <= height`)."""
     try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-        # mkstemp creates 0600; give the file the permissions a plain open() would.
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+        x0, y0, x1, y1 = (int(v) for v in roi)
+    except (TypeError, ValueError):
+        raise ValueError(f"a region is x0,y0,x1,y1 (4 integers), got {roi!r}") from None
+    if not (0 <= x0 < x1 <= width and 0 <= y0 < y1 <= height):
+        raise ValueError(
+            f"region {x0},{y0},{x1},{y1} is not inside the {width}x{height} sensor "
+            "(need 0 <= x0 < x1 <= width and 0 <= y0 < y1 <= height)"
+        )
+    return x0, y0, x1, y1
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -93,15 +81,17 @@ class EventStream:
                 raise ValueError(
                     f"event column {name!r} must be 1-D, got {value.shape}"
                 )
-            if value.size and np.issubdtype(value.dtype, np.integer):
+            if value.size and not np.issubdtype(value.dtype, np.integer):
+                if value.dtype.kind not in "fb" or not np.array_equal(
+                    value, np.round(value)
+                ):  # NaN and text fail here too
+                    raise ValueError(f"event column {name!r} must hold integers")
+            if value.size:
                 info = np.iinfo(dtype)
                 if value.min() < info.min or value.max() > info.max:
                     raise ValueError(
                         f"event column {name!r} has values outside {dtype.__name__}"
                     )
-            elif value.size and not np.issubdtype(value.dtype, np.integer):
-                if not np.array_equal(value, np.round(value)):
-                    raise ValueError(f"event column {name!r} must hold integers")
             object.__setattr__(self, name, value.astype(dtype, copy=False))
         object.__setattr__(self, "width", int(self.width))
         object.__setattr__(self, "height", int(self.height))
@@ -173,6 +163,20 @@ class EventStream:
                 )
             yield part
 
+    def crop(self, roi: tuple[int, int, int, int]) -> EventStream:
+        """The events of the region `roi = (x0, y0, x1, y1)` (half-open, pixels), in
+        the region's own coordinates (geometry `(x1 - x0) x (y1 - y0)`); triggers
+        kept. See `check_roi`."""
+        x0, y0, x1, y1 = check_roi(roi, self.width, self.height)
+        keep = (self.x >= x0) & (self.x < x1) & (self.y >= y0) & (self.y < y1)
+        return dataclasses.replace(
+            self.take(keep),
+            x=self.x[keep] - np.uint16(x0),
+            y=self.y[keep] - np.uint16(y0),
+            width=x1 - x0,
+            height=y1 - y0,
+        )
+
     def time_window(self, t0_us: int, t1_us: int) -> EventStream:
         """Events and triggers with `t0_us <= t_us < t1_us` (stream must be ordered)."""
         lo, hi = np.searchsorted(self.t_us, [t0_us, t1_us], side="left")
@@ -233,33 +237,32 @@ class EventStream:
     def load_npz(cls, path: str | os.PathLike) -> EventStream:
         """Read an events `.npz`; a clear `ValueError` when keys or values are wrong."""
         path = Path(path)
-        if not path.is_file():
-            raise ValueError(f"event file not found: {path}")
-        try:
-            data = np.load(path, allow_pickle=False)
-        except Exception as err:  # zipfile/pickle errors carry no useful type
-            raise ValueError(f"{path} is not a readable .npz file ({err})") from None
-        with data:
-            missing = [k for k in ("x", "y", "p", "t_us") if k not in data.files]
-            if missing:
-                raise ValueError(f"{path} lacks event keys {missing}")
-            cols = {k: np.asarray(data[k]) for k in ("x", "y", "p", "t_us")}
-            if "width" in data.files and "height" in data.files:
-                width, height = int(data["width"]), int(data["height"])
-            elif cols["x"].size:
-                width, height = int(cols["x"].max()) + 1, int(cols["y"].max()) + 1
-            else:
-                raise ValueError(f"{path} has no events and no width/height")
-            trig = {}
-            if "trigger_t_us" in data.files:
-                trig = {
-                    k: np.asarray(data[k])
-                    for k in ("trigger_t_us", "trigger_p", "trigger_id")
-                    if k in data.files
-                }
-                n = trig["trigger_t_us"].size
-                trig.setdefault("trigger_p", np.ones(n, np.uint8))
-                trig.setdefault("trigger_id", np.zeros(n, np.uint8))
+        data = read_npz(path, "events file")
+        missing = [k for k in ("x", "y", "p", "t_us") if k not in data]
+        if missing:
+            raise ValueError(f"{path} lacks event keys {missing}")
+        cols = {k: data[k] for k in ("x", "y", "p", "t_us")}
+        for k, v in cols.items():
+            if v.ndim != 1 or not (
+                np.issubdtype(v.dtype, np.integer) or np.issubdtype(v.dtype, np.floating)
+            ):
+                raise ValueError(f"{path}: {k!r} must be a 1-D numeric column")
+        if "width" in data and "height" in data:
+            width, height = (scalar_int(data, k, path) for k in ("width", "height"))
+        elif cols["x"].size:
+            width, height = int(cols["x"].max()) + 1, int(cols["y"].max()) + 1
+        else:
+            raise ValueError(f"{path} has no events and no width/height")
+        trig = {}
+        if "trigger_t_us" in data:
+            trig = {
+                k: data[k]
+                for k in ("trigger_t_us", "trigger_p", "trigger_id")
+                if k in data
+            }
+            n = trig["trigger_t_us"].size
+            trig.setdefault("trigger_p", np.ones(n, np.uint8))
+            trig.setdefault("trigger_id", np.zeros(n, np.uint8))
         if cols["p"].size and np.issubdtype(cols["p"].dtype, np.signedinteger):
             if cols["p"].min() < 0:  # accept ±1 polarity and map it to 1/0
                 cols["p"] = (cols["p"] > 0).astype(np.uint8)

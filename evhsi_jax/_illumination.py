@@ -104,6 +104,17 @@ def band_table(rig: Rig, *, fwhm_bound_nm: float | None = None) -> BandTable:
 
     **Returns:** a :class:`BandTable` with `values` of shape `(n, M*sub)`.
     """
+    overlap = band_overlap(rig, fwhm_bound_nm=fwhm_bound_nm)
+    weight = rig.camera_response * rig.lamp
+    raw = overlap.values * weight[None, :]
+    gain = 1.0 / jnp.max(jnp.sum(raw, axis=1))
+    return BandTable(raw * gain, overlap.lo_nm, overlap.step_nm)
+
+
+def band_overlap(rig: Rig, *, fwhm_bound_nm: float | None = None) -> BandTable:
+    """The band's overlap with each fine sub-bin over λc, before the camera response
+    and lamp weigh it (`band_table` = this × D·E, normalised). It depends on the band
+    alone (FWHM or profile), so a fit that keeps the band fixed computes it once."""
     lo, hi = table_range_nm(rig, fwhm_bound_nm)
     n = int(np.ceil((hi - lo) / TABLE_STEP_NM)) + 1
     centres = lo + TABLE_STEP_NM * jnp.arange(n, dtype=rig.fwhm_nm.dtype)
@@ -112,10 +123,7 @@ def band_table(rig: Rig, *, fwhm_bound_nm: float | None = None) -> BandTable:
         overlap = _profile_overlap(rig.band_profile, edges, centres)
     else:
         overlap = _gaussian_overlap(rig.fwhm_nm, edges, centres)
-    weight = rig.camera_response * rig.lamp
-    raw = overlap * weight[None, :]
-    gain = 1.0 / jnp.max(jnp.sum(raw, axis=1))
-    return BandTable(raw * gain, lo, TABLE_STEP_NM)
+    return BandTable(overlap, lo, TABLE_STEP_NM)
 
 
 def _profile_overlap(profile, edges, centres):

@@ -7,8 +7,8 @@ import io
 
 import numpy as np
 
-from ._events import atomic_write
 from ._spectra import band_integrate
+from ._storage import atomic_write
 
 __all__ = ["cube_to_srgb", "write_png", "write_comparison_png"]
 

@@ -34,13 +34,13 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._events import atomic_write
 from ._spectra import (
     SpectralGrid,
     default_camera_response,
     default_lamp_spectrum,
     resample,
 )
+from ._storage import atomic_write
 
 __all__ = [
     "Rig",
@@ -216,6 +216,10 @@ SENSOR_PRESETS: dict[str, dict[str, Any]] = {
 COLUMN_SPREAD = (
     0.15  # fraction of the sweep period over which the columns are staggered
 )
+# Upper bounds of the size keys (far above any real rig; they stop typos early).
+MAX_CHANNELS = 4096
+MAX_SAMPLES_PER_SWEEP = 1 << 20
+MAX_FINE_BINS = 200_000
 
 
 def default_column_offsets_us(width: int, sweep_rate_hz: float) -> np.ndarray:
@@ -618,6 +622,14 @@ def _validated(cfg: dict) -> dict:
         raise ValueError(f"rig key 'samples_per_sweep' must be an integer, got {sps!r}")
     if int(sps) < 16:
         raise ValueError(f"rig key 'samples_per_sweep' must be >= 16, got {sps}")
+    # Sizes are checked before anything is allocated: every array of a run grows
+    # with them (a typo like 1e9 channels must not eat the machine's memory).
+    if not 1 <= out["channels"] <= MAX_CHANNELS:
+        raise ValueError(f"rig key 'channels' must be in [1, {MAX_CHANNELS}], got {ch}")
+    if int(sps) > MAX_SAMPLES_PER_SWEEP:
+        raise ValueError(
+            f"rig key 'samples_per_sweep' must be <= {MAX_SAMPLES_PER_SWEEP}, got {sps}"
+        )
     out["samples_per_sweep"] = int(sps)
     for k in (
         "fwhm_nm",
@@ -632,6 +644,12 @@ def _validated(cfg: dict) -> dict:
     ):
         out[k] = _positive(k, cfg[k])
     out["refractory_us"] = _positive("refractory_us", cfg["refractory_us"])
+    bins = (out["channel_stop_nm"] - out["channel_start_nm"]) / out["fine_step_nm"]
+    if bins > MAX_FINE_BINS:
+        raise ValueError(
+            f"rig key 'fine_step_nm' {out['fine_step_nm']:g} makes {bins:.3g} "
+            f"simulator bins over the channel range (at most {MAX_FINE_BINS})"
+        )
     for k in ("threshold_sigma", "baseline_rel", "noise_rate_hz") + EFFECT_KEYS:
         out[k] = _positive(k, cfg[k], allow_zero=True)
     if out["on_off_correlation"] > 1:

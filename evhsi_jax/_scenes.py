@@ -30,8 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ._events import atomic_write
 from ._spectra import SpectralGrid, band_integrate
+from ._storage import atomic_write, read_npz
 
 __all__ = ["Scene", "load_scene", "BUILTIN_SCENES", "parse_size"]
 
@@ -282,16 +282,8 @@ def load_scene(name_or_path: str | os.PathLike, size=None) -> Scene:
             f"unknown scene {key!r}: use one of {', '.join(BUILTIN_SCENES)} or a "
             ".npz scene file"
         )
-    if not path.is_file():
-        raise ValueError(f"scene file not found: {path}")
     keys = ("reflectance", "wavelengths_nm")
-    try:
-        # numpy's own ValueErrors (a file that is not a zip, object arrays) are
-        # "unreadable file" too, not messages to pass on as they are.
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {k: np.asarray(data[k]) for k in keys if k in data.files}
-    except Exception as err:
-        raise ValueError(f"{path} is not a readable .npz file ({err})") from None
+    arrays = read_npz(path, "scene file")
     missing = set(keys) - set(arrays)
     if missing:
         raise ValueError(f"scene file {path} lacks keys {sorted(missing)}")

@@ -34,6 +34,10 @@ from __future__ import annotations
 import functools
 import math
 import os
+import socket
+import sys
+import threading
+import time
 
 import equinox as eqx
 import jax
@@ -66,6 +70,7 @@ def initialize_distributed(
     coordinator_address: str | None = None,
     num_processes: int | None = None,
     process_id: int | None = None,
+    timeout_s: int | None = None,
 ) -> bool:
     """Join a multi-host run (`jax.distributed.initialize`), once per process.
 
@@ -73,9 +78,27 @@ def initialize_distributed(
     0), `EVHSI_NUM_PROCESSES` and `EVHSI_PROCESS_ID`; if those are unset too, JAX's own
     cluster detection (SLURM, Open MPI, TPU) fills them in. Must run before any other
     JAX call. Returns True once initialised (also if it already was).
+
+    `timeout_s` (default `EVHSI_DISTRIBUTED_TIMEOUT`, else 60 s) bounds the wait for
+    the coordinator and the other processes (JAX's own default waits 300 s without a
+    word, then aborts the process). A process other than 0 first checks that the
+    coordinator's port answers, and raises `ConnectionError` if it does not within the
+    time. Past the time, JAX's wait for the other processes cannot be interrupted: a
+    watchdog then prints one line naming the coordinator to stderr and ends the
+    process with exit status 2 (what JAX would do, with exit 134 and a stack dump).
     """
     if jax.distributed.is_initialized():
         return True
+    if timeout_s is None:
+        raw = os.environ.get("EVHSI_DISTRIBUTED_TIMEOUT", "60")
+        try:
+            timeout_s = int(raw)
+        except ValueError:
+            raise ValueError(
+                f"EVHSI_DISTRIBUTED_TIMEOUT must be an integer, got {raw!r}"
+            ) from None
+    if timeout_s < 1:
+        raise ValueError(f"the distributed timeout must be >= 1 s, got {timeout_s}")
     kw = {"coordinator_address": coordinator_address}
     kw["num_processes"], kw["process_id"] = num_processes, process_id
     for name, var in _ENV.items():
@@ -85,8 +108,56 @@ def initialize_distributed(
                 kw[name] = raw if name == "coordinator_address" else int(raw)
             except ValueError:
                 raise ValueError(f"{var} must be an integer, got {raw!r}") from None
-    jax.distributed.initialize(**{k: v for k, v in kw.items() if v is not None})
+    where = kw["coordinator_address"] or "the detected cluster"
+    hint = "are all processes started and the coordinator reachable?"
+    if kw["coordinator_address"] and kw["process_id"] not in (None, 0):
+        _wait_for_port(kw["coordinator_address"], timeout_s, hint)
+    deadline = time.monotonic() + timeout_s
+
+    def give_up():
+        sys.stderr.write(
+            f"evhsi: error: could not join the multi-host run at {where} within "
+            f"{timeout_s} s (EVHSI_DISTRIBUTED_TIMEOUT); {hint}\n"
+        )
+        sys.stderr.flush()
+        os._exit(2)
+
+    watchdog = threading.Timer(max(0.0, deadline - time.monotonic()), give_up)
+    watchdog.daemon = True
+    watchdog.start()
+    try:
+        jax.distributed.initialize(
+            **{k: v for k, v in kw.items() if v is not None},
+            initialization_timeout=int(timeout_s) + 30,  # the watchdog fires first
+        )
+    except (RuntimeError, ValueError) as err:  # XlaRuntimeError is a RuntimeError
+        msg = " ".join(str(err).split())[:160]
+        raise ConnectionError(
+            f"could not join the multi-host run at {where} ({msg}); {hint}"
+        ) from None
+    finally:
+        watchdog.cancel()
     return True
+
+
+def _wait_for_port(address: str, timeout_s: float, hint: str) -> None:
+    """Return once `host:port` accepts a TCP connection; `ConnectionError` after
+    `timeout_s` seconds of trying."""
+    host, _, port = address.rpartition(":")
+    if not host or not port.isdigit():
+        raise ValueError(f"coordinator address must be host:port, got {address!r}")
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            with socket.create_connection((host.strip("[]"), int(port)), timeout=2.0):
+                return
+        except OSError as err:
+            if time.monotonic() >= deadline:
+                raise ConnectionError(
+                    f"the coordinator {address} did not answer within {timeout_s} s "
+                    f"({err.strerror or err}); {hint}"
+                ) from None
+            time.sleep(0.2)
 
 
 def is_main_process() -> bool:

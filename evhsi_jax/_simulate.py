@@ -24,6 +24,7 @@ from tqdm.auto import tqdm
 from . import _shard
 from ._events import EventStream
 from ._illumination import TABLE_STEP_NM, BandTable, band_table, lookup
+from ._limits import check_fits
 from ._rig import Rig
 from ._scenes import Scene
 from ._sensor import exact_events_scan, initial_state, photoreceptor_lowpass
@@ -258,11 +259,19 @@ def simulate(
 
     **Returns:** an :class:`EventStream` in time order (and the info if asked).
     """
-    scenes = [scene] * sweeps if isinstance(scene, Scene) else list(scene)
     if sweeps < 1:
         raise ValueError(f"sweeps must be >= 1, got {sweeps}")
-    if len(scenes) != sweeps:
+    scenes = None if isinstance(scene, Scene) else list(scene)
+    if scenes is not None and len(scenes) != sweeps:
         raise ValueError(f"got {len(scenes)} scenes for {sweeps} sweeps")
+    first = scene if scenes is None else scenes[0]
+    # At least ~8 events of 13 bytes per pixel and sweep are kept in memory (a real
+    # scene makes several times more): refuse what cannot fit before starting.
+    check_fits(
+        8 * 13 * float(sweeps) * first.height * first.width,
+        f"simulating {sweeps} sweep(s) of {first.height}x{first.width} pixels",
+    )
+    scenes = [scene] * sweeps if scenes is None else scenes
     h, w = scenes[0].height, scenes[0].width
     if any((s.height, s.width) != (h, w) for s in scenes):
         raise ValueError("all per-sweep scenes must have the same size")

@@ -22,7 +22,11 @@ and when the run stops for any reason). A crash or Ctrl-C loses at most the swee
 flight; a rerun with the same inputs and settings skips every sweep whose file exists
 (files the index had not caught up with are adopted from their own metadata), and no
 file is ever left half-written. A rerun with other inputs or settings into the same
-folder is refused (`overwrite=True` starts afresh).
+folder is refused (`overwrite=True` starts afresh). Each index entry carries the
+sha256 of its sweep file; a resume redoes any sweep whose file no longer matches
+(bit rot, a file replaced by hand). One run at a time: the folder is locked
+(`.evhsi.lock`, released by the kernel however the run ends) and a second run into it
+is refused; temporary files that a killed run left are removed by the next.
 
 **Per-sweep reference.** The first event of a pixel in sweep k refers to the pixel's
 reference level, set at the release $τ + η$ after its *last event before the sweep*
@@ -46,6 +50,7 @@ than 1.5 median trigger intervals (a missed trigger) is marked `irregular`.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import io
@@ -61,13 +66,15 @@ from tqdm.auto import tqdm
 
 from ._calibration import Calibration
 from ._cubefile import load_cube, save_cube
-from ._events import EventStream, atomic_write
-from ._io import iter_events
+from ._events import EventStream, check_roi
+from ._io import EventReader
 from ._io._reader import DEFAULT_CHUNK_BYTES
 from ._reconstruct import ProblemConfig, reconstruct, solver_spec
 from ._reconstruct._pixels import TIMESTAMP_CENTRE_US
 from ._render import cube_to_srgb
 from ._rig import Rig
+from ._storage import TEMP_SUFFIX, atomic_write, read_npz
+from ._video_store import VideoStore, is_video_store
 
 __all__ = [
     "StreamResult",
@@ -76,6 +83,7 @@ __all__ = [
     "iter_sweep_cubes",
     "sweep_file_name",
     "write_preview_gif",
+    "convert_sweeps",
     "INDEX_NAME",
     "PREVIEW_NAME",
 ]
@@ -100,6 +108,9 @@ class StreamResult:
     - `reconstructed`, `skipped`: solved in this run / found finished already.
     - `low_event_sweeps`: indices flagged `low_events`.
     - `seconds`: wall time of this run; `solve_seconds`: of its solves alone.
+    - `stale_removed`: temporary files of killed runs removed from the folder.
+    - `decode`: the event file's decode counters (`DecodeReport.as_dict`; None for an
+      in-memory stream).
     """
 
     out_dir: Path
@@ -110,6 +121,8 @@ class StreamResult:
     low_event_sweeps: list
     seconds: float
     solve_seconds: float
+    stale_removed: int = 0
+    decode: dict | None = None
 
 
 # --- sweep assembly -----------------------------------------------------------------
@@ -260,6 +273,11 @@ def load_sweep_index(out_dir: str | os.PathLike) -> dict:
     `sweeps`, a list of entries `{sweep, file, start_us, stop_us, events, events_rel,
     low_events, irregular, pixels_solved, seconds}` in sweep order.
     """
+    if is_video_store(out_dir):
+        index = VideoStore(out_dir, "r").index
+        if not isinstance(index, dict) or index.get("format") != FORMAT:
+            raise ValueError(f"{out_dir} holds no evhsi index: not a per-sweep store")
+        return index
     path = Path(out_dir) / INDEX_NAME
     if not path.is_file():
         raise ValueError(f"{out_dir} holds no {INDEX_NAME}: not a per-sweep dataset")
@@ -276,19 +294,85 @@ def iter_sweep_cubes(out_dir: str | os.PathLike) -> Iterator[tuple[dict, dict]]:
     """`(entry, cube_file)` per finished sweep, in order, one file in memory at a time
     (`cube_file` as :func:`evhsi_jax.load_cube` returns it)."""
     index = load_sweep_index(out_dir)
+    if is_video_store(out_dir):
+        video = VideoStore(out_dir, "r")
+        for entry in index["sweeps"]:
+            yield entry, video.cube_file(entry["position"])
+        return
     for entry in index["sweeps"]:
         yield entry, load_cube(Path(out_dir) / entry["file"])
 
 
 def _entry_from_file(path: Path) -> dict | None:
     """An index entry rebuilt from a sweep file's own metadata (None if unusable)."""
-    try:
-        with np.load(path, allow_pickle=False) as d:
-            meta = {k: int(d[k]) for k in ("sweep", "start_us", "stop_us", "events")}
-            meta["pixels_solved"] = int(np.count_nonzero(d["events_per_pixel"]))
-    except Exception:  # a foreign or damaged file: redo that sweep
+    try:  # reading every member checks the zip CRCs: a damaged file fails here
+        d = read_npz(path, "sweep file")
+        meta = {k: int(d[k]) for k in ("sweep", "start_us", "stop_us", "events")}
+        meta["pixels_solved"] = int(np.count_nonzero(d["events_per_pixel"]))
+    except (ValueError, KeyError, TypeError):  # foreign or damaged: redo that sweep
         return None
-    return {"file": path.name, **meta, "seconds": None}
+    return {"file": path.name, **meta, "seconds": None, "sha256": _file_digest(path)}
+
+
+def _file_digest(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+LOCK_NAME = ".evhsi.lock"
+
+
+class _FolderLock:
+    """An exclusive advisory lock on a dataset folder (`fcntl.flock` on a lock file).
+
+    The kernel releases it when the process ends, however it ends (SIGKILL included),
+    so a killed run never blocks the next one. A second run into a locked folder is
+    refused at once. Without `fcntl` (Windows) no lock is taken.
+    """
+
+    def __init__(self, folder: Path):
+        self.path = folder / LOCK_NAME
+        self.fd = None
+
+    def __enter__(self):
+        try:
+            import fcntl
+        except ImportError:  # pragma: no cover - not a POSIX system
+            return self
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            owner = os.pread(fd, 64, 0).decode(errors="replace").strip() or "?"
+            os.close(fd)
+            raise ValueError(
+                f"{self.path.parent} is in use by another evhsi run (pid {owner}); "
+                "wait for it or use another folder"
+            ) from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        self.fd = fd
+        return self
+
+    def __exit__(self, *exc):
+        if self.fd is not None:
+            os.close(self.fd)  # releases the lock; the file stays (harmless)
+            self.fd = None
+
+
+def _remove_stale_temporaries(folder: Path) -> int:
+    """Delete the temporary files that killed runs left (`atomic_write`'s
+    `.<name>.<random>.tmp`); only called with the folder's lock held."""
+    n = 0
+    for f in folder.glob(f".*{TEMP_SUFFIX}"):
+        name = f.name[1:]
+        if name.startswith(("sweep_", INDEX_NAME, PREVIEW_NAME)):
+            f.unlink(missing_ok=True)
+            n += 1
+    return n
 
 
 def _flag(entries: list[dict], rel: float, period: float) -> float:
@@ -304,6 +388,48 @@ def _flag(entries: list[dict], rel: float, period: float) -> float:
         e["low_events"] = bool(c < rel * med or c == 0)
         e["irregular"] = bool(n > 1.5 * typical)
     return med
+
+
+def _writer_lock(out_dir: Path, video: VideoStore | None):
+    if video is None:
+        return _FolderLock(out_dir)
+
+    @contextlib.contextmanager
+    def held():
+        video.lock()
+        try:
+            yield
+        finally:
+            video.unlock()
+
+    return held()
+
+
+def _finished_in_store(video: VideoStore, fp: str, *, overwrite: bool) -> dict:
+    """Sweeps a previous run of the same inputs and settings finished in a video
+    store (its complete sweeps after `repair`), as for `_finished_sweeps`."""
+    if overwrite:
+        video.clear()
+        return {}
+    old = video.index
+    if old is None:
+        if list(video.group.array_keys()):
+            raise ValueError(
+                f"{video.path} holds arrays but no evhsi index; use another store or "
+                "overwrite (--restart)"
+            )
+        return {}
+    if old.get("fingerprint") != fp:
+        raise ValueError(
+            f"{video.path} holds sweeps of other inputs or settings; use another "
+            "store, or overwrite (--restart) to start afresh"
+        )
+    seconds = {e["sweep"]: e.get("seconds") for e in old.get("sweeps", [])}
+    done = {}
+    for e in video.entries():
+        e["seconds"] = seconds.get(e["sweep"])
+        done[e["sweep"]] = e
+    return done
 
 
 def _finished_sweeps(out_dir: Path, fp: str, *, overwrite: bool) -> dict[int, dict]:
@@ -332,15 +458,18 @@ def _finished_sweeps(out_dir: Path, fp: str, *, overwrite: bool) -> dict[int, di
             f"{out_dir} holds sweeps of other inputs or settings; use another folder, "
             "or overwrite (--restart) to start afresh"
         )
-    done = {
-        int(e["sweep"]): e for e in old["sweeps"] if (out_dir / e["file"]).is_file()
-    }
+    done = {}
+    for e in old["sweeps"]:  # trust a finished file only if its checksum agrees
+        f = out_dir / e["file"]
+        if f.is_file() and e.get("sha256") == _file_digest(f):
+            done[int(e["sweep"])] = e
     for f in files:
         tail = f.stem.removeprefix("sweep_")
         if (
             tail.isdigit()
             and int(tail) not in done
             and f.name == sweep_file_name(int(tail))
+            and not any(e["file"] == f.name for e in old["sweeps"])  # failed its check
         ):
             e = _entry_from_file(f)
             if e is not None and e["sweep"] == int(tail):
@@ -349,14 +478,21 @@ def _finished_sweeps(out_dir: Path, fp: str, *, overwrite: bool) -> dict[int, di
 
 
 # --- the run -------------------------------------------------------------------------
-def _chunks_of(source, chunk_bytes):
+def _chunks_of(source, chunk_bytes, strict=False, follow=None):
+    """`(reader, chunks)`: the file's reader (None for a stream; its `report` fills
+    as the chunks are read) and the chunk iterator (`follow`: keyword arguments of
+    `EventReader.follow`, for a file still being written)."""
     if isinstance(source, EventStream):
-        yield from source.split(max(1, chunk_bytes // 2))
-        return
-    yield from iter_events(source, chunk_bytes=chunk_bytes)
+        if follow is not None:
+            raise ValueError("follow applies to a .raw file being written")
+        return None, source.split(max(1, chunk_bytes // 2))
+    reader = EventReader(source, chunk_bytes=chunk_bytes, strict=strict)
+    if follow is not None:
+        return reader, reader.follow(**follow)
+    return reader, iter(reader)
 
 
-def _source_info(source) -> dict:
+def _source_info(source, live: bool = False) -> dict:
     if isinstance(source, EventStream):
         t = source.t_us
         return {
@@ -368,7 +504,7 @@ def _source_info(source) -> dict:
     p = Path(source)
     if not p.is_file():
         raise ValueError(f"event file not found: {p}")
-    return {"path": p.name, "bytes": p.stat().st_size}
+    return {"path": p.name, "bytes": "live" if live else p.stat().st_size}
 
 
 def _gif_bytes(frames: list[np.ndarray], fps: float) -> bytes:
@@ -385,6 +521,37 @@ def _gif_bytes(frames: list[np.ndarray], fps: float) -> bytes:
         loop=0,
     )
     return buf.getvalue()
+
+
+def convert_sweeps(src: str | os.PathLike, dst: str | os.PathLike) -> int:
+    """Copy a per-sweep dataset (folder or store) into a new video store `dst`
+    (`.zarr`), sweep by sweep with bounded memory; returns the number of sweeps.
+
+    The store gets its index last, so an interrupted conversion leaves a store that
+    every reader refuses (no index) rather than a silently shorter video."""
+    index = load_sweep_index(src)
+    dst = Path(dst)
+    if not is_video_store(dst):
+        raise ValueError(f"{dst}: a video store must end in .zarr")
+    if dst.exists() and any(dst.iterdir()):
+        raise ValueError(f"{dst} exists and is not empty")
+    if not dst.parent.is_dir():
+        raise ValueError(f"cannot create {dst}: {dst.parent} does not exist")
+    video = VideoStore(dst, "a")
+    with _writer_lock(dst, video):
+        video.prepare(index["height"], index["width"], index["wavelengths_nm"])
+        entries = []
+        for entry, data in iter_sweep_cubes(src):
+            e = {**entry, "file": None, "position": len(video)}
+            srgb = data.get("srgb")
+            if srgb is None:
+                srgb = np.round(255 * cube_to_srgb(data["cube"], data["wavelengths_nm"]))
+            video.append(
+                e, data["cube"], srgb, data["events_per_pixel"], data["kkt"]
+            )
+            entries.append(e)
+        video.set_index({**index, "sweeps": entries, "preview": None})
+    return len(entries)
 
 
 def write_preview_gif(
@@ -411,9 +578,13 @@ def write_preview_gif(
     step = max(1, math.ceil(len(entries) / max_frames))
     shrink = max(1, math.ceil(index["width"] / max_width))
     frames = []
+    video = VideoStore(out_dir, "r") if is_video_store(out_dir) else None
     for e in entries[::step]:
-        with np.load(out_dir / e["file"], allow_pickle=False) as d:
-            frames.append(np.asarray(d["srgb"])[::shrink, ::shrink])
+        if video is not None:
+            srgb = np.asarray(video.group["srgb"][e["position"]])
+        else:
+            srgb = read_npz(out_dir / e["file"], "sweep file")["srgb"]
+        frames.append(srgb[::shrink, ::shrink])
     rate = fps or min(50.0, 1e6 / index["period_us"] / step)
     data = _gif_bytes(frames, rate)
     atomic_write(path, lambda f: f.write(data))
@@ -443,6 +614,11 @@ def reconstruct_sweeps(
     progress: bool = False,
     on_sweep: Callable[[dict], None] | None = None,
     index_interval_s: float = 1.0,
+    strict: bool = False,
+    follow: bool = False,
+    idle_timeout_s: float = 10.0,
+    should_stop: Callable[[], bool] | None = None,
+    roi: tuple[int, int, int, int] | None = None,
 ) -> StreamResult:
     """Reconstruct every sweep of a recording into its own cube file (resumable).
 
@@ -473,6 +649,15 @@ def reconstruct_sweeps(
     - `on_sweep`: called with each finished sweep's index entry once its file is
       written (an exception raised there stops the run like a crash would).
     - `index_interval_s`: the least time between two index rewrites.
+    - `strict`: stop at the first defect of the event file (see `EventReader`).
+    - `follow`: the `.raw` file is still being written (live capture): read what
+      arrives, reconstruct each sweep as soon as the next one starts (or the
+      recording ends), and stop when the file has not grown for `idle_timeout_s`
+      seconds or `should_stop()` returns True (`EventReader.follow`). The cubes are
+      those of the same run on the finished file. A live run's settings record the
+      source as `live` (not its size), so it resumes with `follow` again.
+    - `roi`: `(x0, y0, x1, y1)`, reconstruct only this region (half-open, pixels);
+      cubes are the region's size (the calibration is cut to it: `Calibration.crop`).
 
     **Returns:** a :class:`StreamResult`.
     """
@@ -497,6 +682,20 @@ def reconstruct_sweeps(
             "file with evhsi_jax.load_calibration(path) and pass that"
         )
     cal = calibration if isinstance(calibration, Calibration) else Calibration(calibration)
+    live = (
+        dict(idle_timeout_s=idle_timeout_s, should_stop=should_stop) if follow else None
+    )
+    reader, chunks = _chunks_of(source, chunk_bytes, strict, live)
+    if roi is not None:  # a region: its events, its columns' offsets, its maps
+        full = reader if reader is not None else source
+        roi = check_roi(roi, full.width, full.height)
+        if threshold_on_map is not None:
+            cal = dataclasses.replace(
+                cal, threshold_on=threshold_on_map, threshold_off=threshold_off_map
+            )
+            threshold_on_map = threshold_off_map = None
+        cal = cal.crop(roi, full.width)
+        chunks = (c.crop(roi) for c in chunks)
     rig = cal.rig
     if threshold_on_map is None and cal.threshold_on is not None:
         threshold_on_map, threshold_off_map = cal.threshold_on, cal.threshold_off
@@ -505,7 +704,6 @@ def reconstruct_sweeps(
     period = float(period_us) if period_us else float(rig.period_us)
     eta = float(rig.refractory_us)
 
-    chunks = _chunks_of(source, chunk_bytes)
     cutter = _SweepCutter(chunks, period, triggers, phase_us)
     sweeps_iter = iter(cutter)
     try:
@@ -514,7 +712,7 @@ def reconstruct_sweeps(
         raise ValueError(f"{source} holds no events") from None
     w, h = cutter.geometry
     settings = {
-        "source": _source_info(source),
+        "source": _source_info(source, live=follow),
         "rig": rig.to_dict(width=w),
         "solver": dataclasses.asdict(spec),
         "config": dataclasses.asdict(cfg),
@@ -524,125 +722,150 @@ def reconstruct_sweeps(
         "phase_us": cutter.phase,
         "reference": "carry",
     }
+    if roi is not None:  # (absent otherwise: older datasets keep their fingerprint)
+        settings["roi"] = list(roi)
     fp = _fingerprint(settings)
 
     index_path = out_dir / INDEX_NAME
-    if writer:
+    video = None
+    if writer and is_video_store(out_dir):
+        video = VideoStore(out_dir, "a")
+    elif writer:
         out_dir.mkdir(exist_ok=True)
-    done = _finished_sweeps(out_dir, fp, overwrite=overwrite and writer)
+    # One writer per folder: a second run refuses instead of mixing its sweeps in.
+    with _writer_lock(out_dir, video) if writer else contextlib.nullcontext():
+        if video is not None:
+            stale = video.repair()
+            done = _finished_in_store(video, fp, overwrite=overwrite)
+            video.prepare(h, w, rig.wavelengths_nm)
+        else:
+            stale = _remove_stale_temporaries(out_dir) if writer else 0
+            done = _finished_sweeps(out_dir, fp, overwrite=overwrite and writer)
 
-    index = {
-        "format": FORMAT,
-        "version": VERSION,
-        "fingerprint": fp,
-        "complete": False,
-        "height": h,
-        "width": w,
-        "channels": rig.channels,
-        "wavelengths_nm": [float(v) for v in rig.wavelengths_nm],
-        "period_us": period,
-        "boundaries": cutter.mode,
-        "reference": "carry: first event of a sweep refers to the release after the "
-        "pixel's last earlier event",
-        "low_event_rel": low_event_rel,
-        "median_events": 0.0,
-        "preview": None,
-        "settings": settings,
-        "sweeps": [],
-    }
-    last_write = [0.0]
+        index = {
+            "format": FORMAT,
+            "version": VERSION,
+            "fingerprint": fp,
+            "complete": False,
+            "height": h,
+            "width": w,
+            "channels": rig.channels,
+            "wavelengths_nm": [float(v) for v in rig.wavelengths_nm],
+            "period_us": period,
+            "boundaries": cutter.mode,
+            "reference": "carry: first event of a sweep refers to the release after the "
+            "pixel's last earlier event",
+            "low_event_rel": low_event_rel,
+            "median_events": 0.0,
+            "preview": None,
+            "settings": settings,
+            "sweeps": [],
+        }
+        last_write = [0.0]
 
-    def commit_index(force=False):
-        if not writer:
-            return
-        now = time.perf_counter()
-        if not force and now - last_write[0] < index_interval_s:
-            return
-        entries = [done[k] for k in sorted(done)]
-        index["median_events"] = _flag(entries, low_event_rel, period)
-        index["sweeps"] = entries
-        _write_json(index_path, index)
-        last_write[0] = now
+        def commit_index(force=False):
+            if not writer:
+                return
+            now = time.perf_counter()
+            if not force and now - last_write[0] < index_interval_s:
+                return
+            entries = [done[k] for k in sorted(done)]
+            index["median_events"] = _flag(entries, low_event_rel, period)
+            index["sweeps"] = entries
+            if video is not None:
+                video.set_index(index)
+            else:
+                _write_json(index_path, index)
+            last_write[0] = now
 
-    last_t = np.full(h * w, -1, np.int64)  # last event time per pixel (-1: none)
+        last_t = np.full(h * w, -1, np.int64)  # last event time per pixel (-1: none)
 
-    def carry(ev: EventStream):
-        if len(ev):
-            pix = ev.y.astype(np.int64) * w + ev.x.astype(np.int64)
-            np.maximum.at(last_t, pix, ev.t_us)
+        def carry(ev: EventStream):
+            if len(ev):
+                pix = ev.y.astype(np.int64) * w + ev.x.astype(np.int64)
+                np.maximum.at(last_t, pix, ev.t_us)
 
-    n_new = n_skip = 0
-    solve_s = 0.0
-    bar = tqdm(disable=not progress, unit="sweep", desc="reconstruct sweeps")
-    try:
-        commit_index(force=True)
-        for k, start, stop, ev, before in _chain([first], sweeps_iter):
-            if max_sweeps is not None and k >= max_sweeps:
-                break
-            if before is not None:
-                carry(before)
-            if k in done and done[k]["start_us"] == start:
-                n_skip += 1
-                carry(ev)
-                bar.update(1)
-                continue
-            ref = np.where(last_t >= 0, last_t + TIMESTAMP_CENTRE_US + eta, np.nan)
-            t0 = time.perf_counter()
-            cube, info = reconstruct(
-                ev,
-                cal,
-                solver=spec,
-                config=cfg,
-                threshold_on_map=threshold_on_map,
-                threshold_off_map=threshold_off_map,
-                t_start_us=start,
-                reference_us=ref.reshape(h, w),
-                chunk_pixels=chunk_pixels,
-                sub_batch=sub_batch,
-                mesh=mesh,
-                return_info=True,
-            )
-            dt = time.perf_counter() - t0
-            solve_s += dt
-            carry(ev)
-            entry = {
-                "sweep": k,
-                "file": sweep_file_name(k),
-                "start_us": int(start),
-                "stop_us": int(stop),
-                "events": len(ev),
-                "pixels_solved": int(info.solved.sum()),
-                "seconds": round(dt, 4),
-            }
-            if writer:
-                srgb = np.round(255 * cube_to_srgb(cube, rig.wavelengths_nm))
-                save_cube(
-                    out_dir / entry["file"],
-                    cube,
-                    rig.wavelengths_nm,
-                    srgb=srgb.astype(np.uint8),
-                    events_per_pixel=info.events.astype(np.int32),
-                    kkt=info.kkt,
-                    sweep=np.int64(k),
-                    start_us=np.int64(start),
-                    stop_us=np.int64(stop),
-                    events=np.int64(len(ev)),
+        n_new = n_skip = 0
+        solve_s = 0.0
+        bar = tqdm(disable=not progress, unit="sweep", desc="reconstruct sweeps")
+        try:
+            commit_index(force=True)
+            for k, start, stop, ev, before in _chain([first], sweeps_iter):
+                if max_sweeps is not None and k >= max_sweeps:
+                    break
+                if before is not None:
+                    carry(before)
+                if k in done and done[k]["start_us"] == start:
+                    n_skip += 1
+                    carry(ev)
+                    bar.update(1)
+                    continue
+                ref = np.where(last_t >= 0, last_t + TIMESTAMP_CENTRE_US + eta, np.nan)
+                t0 = time.perf_counter()
+                cube, info = reconstruct(
+                    ev,
+                    cal,
+                    solver=spec,
+                    config=cfg,
+                    threshold_on_map=threshold_on_map,
+                    threshold_off_map=threshold_off_map,
+                    t_start_us=start,
+                    reference_us=ref.reshape(h, w),
+                    chunk_pixels=chunk_pixels,
+                    sub_batch=sub_batch,
+                    mesh=mesh,
+                    return_info=True,
                 )
-            done[k] = entry
-            n_new += 1
-            bar.update(1)
-            bar.set_postfix_str(f"{h * w / max(dt, 1e-9):,.0f} px/s", refresh=False)
-            commit_index()
-            if on_sweep is not None:
-                on_sweep(dict(entry))
-        index["complete"] = True  # every sweep (up to max_sweeps) is done
-    finally:
-        bar.close()
-        commit_index(force=True)
-    if writer and preview and index["complete"] and done:
-        gif = write_preview_gif(out_dir)
-        index["preview"] = gif.name if gif else None
-        commit_index(force=True)
+                dt = time.perf_counter() - t0
+                solve_s += dt
+                carry(ev)
+                if video is not None and k < len(video):
+                    raise ValueError(
+                        f"{out_dir}: sweep {k} is in the store with another start time"
+                    )
+                entry = {
+                    "sweep": k,
+                    "file": None if video is not None else sweep_file_name(k),
+                    "start_us": int(start),
+                    "stop_us": int(stop),
+                    "events": len(ev),
+                    "pixels_solved": int(info.solved.sum()),
+                    "seconds": round(dt, 4),
+                }
+                if writer:
+                    srgb = np.round(255 * cube_to_srgb(cube, rig.wavelengths_nm))
+                if video is not None:
+                    entry["position"] = len(video)
+                    video.append(entry, cube, srgb, info.events, info.kkt)
+                elif writer:
+                    save_cube(
+                        out_dir / entry["file"],
+                        cube,
+                        rig.wavelengths_nm,
+                        srgb=srgb.astype(np.uint8),
+                        events_per_pixel=info.events.astype(np.int32),
+                        kkt=info.kkt,
+                        sweep=np.int64(k),
+                        start_us=np.int64(start),
+                        stop_us=np.int64(stop),
+                        events=np.int64(len(ev)),
+                    )
+                    entry["sha256"] = _file_digest(out_dir / entry["file"])
+                done[k] = entry
+                n_new += 1
+                bar.update(1)
+                bar.set_postfix_str(f"{h * w / max(dt, 1e-9):,.0f} px/s", refresh=False)
+                commit_index()
+                if on_sweep is not None:
+                    on_sweep(dict(entry))
+            index["complete"] = True  # every sweep (up to max_sweeps) is done
+        finally:
+            bar.close()
+            commit_index(force=True)
+        if writer and video is None and preview and index["complete"] and done:
+            gif = write_preview_gif(out_dir)
+            index["preview"] = gif.name if gif else None
+            commit_index(force=True)
     entries = index["sweeps"]
     return StreamResult(
         out_dir=out_dir,
@@ -653,6 +876,8 @@ def reconstruct_sweeps(
         low_event_sweeps=[e["sweep"] for e in entries if e["low_events"]],
         seconds=time.perf_counter() - t_run,
         solve_seconds=solve_s,
+        stale_removed=stale,
+        decode=None if reader is None else reader.report.as_dict(),
     )
 
 

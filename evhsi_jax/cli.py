@@ -16,6 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ._cubefile import CUBE_SUFFIXES
+from ._events import check_roi
+from ._storage import check_outputs, same_file
+
 __all__ = ["main"]
 
 UNITS = """
@@ -28,10 +32,6 @@ pixel's peak intensity.
 class _Parser(argparse.ArgumentParser):
     def error(self, message):  # one line, not usage + message
         self.exit(2, f"evhsi: error: {message} (see `{self.prog} --help`)\n")
-
-
-def _fmt(cls):
-    return lambda prog: argparse.RawDescriptionHelpFormatter(prog, max_help_position=32)
 
 
 def _add_rig(p):
@@ -57,6 +57,65 @@ def _out_path(path: str, suffixes: tuple[str, ...], what: str) -> Path:
     return p
 
 
+def _cube_outputs(path, name: str) -> dict:
+    """The files a cube output writes (ENVI: the header, image and extras)."""
+    if path is None:
+        return {}
+    path = Path(path)
+    if path.suffix.lower() != ".hdr":
+        return {name: path}
+    return {
+        name: path,
+        f"{name}'s image": path.with_suffix(".img"),
+        f"{name}'s extras": path.with_name(path.stem + ".evhsi.npz"),
+    }
+
+
+def _warn(args, text: str) -> None:
+    print(f"evhsi {args.command}: warning: {text}", file=sys.stderr)
+
+
+def _problems(args, what, problems: list[str], *, fatal: bool = False) -> None:
+    """Counted problems of an input: a warning line on stderr, or (with --strict, or
+    when `fatal`: the output would be wrong) an error."""
+    if not problems:
+        return
+    text = f"{what}: " + "; ".join(problems)
+    if fatal or getattr(args, "strict", False):
+        raise ValueError(text + ("" if fatal else " (--strict)"))
+    _warn(args, text)
+
+
+def _read_events(args, path, *, computes: bool = True):
+    """Read an event file, reporting what the decoder skipped or clamped. When the
+    events feed a computation (`computes`), time jumping back is an error: the
+    answer would be wrong (a concatenated recording, say)."""
+    from ._io import EventReader
+
+    reader = EventReader(path, strict=getattr(args, "strict", False))
+    events = reader.read()
+    report = reader.report
+    _problems(args, path, report.problems(), fatal=computes and report.time_jumped_back)
+    return events
+
+
+def _decode_problems(counters: dict | None) -> list[str]:
+    if not counters:
+        return []
+    from ._io import DecodeReport
+
+    return DecodeReport(**counters).problems()
+
+
+def _add_strict(p):
+    p.add_argument(
+        "--strict",
+        action="store_true",
+        help="treat counted problems of the input (skipped or out-of-geometry events, "
+        "time going back, sweeps left out) as errors instead of warnings",
+    )
+
+
 # --- sub-commands ---------------------------------------------------------------------
 def cmd_rig(args):
     from ._scenes import parse_size
@@ -75,9 +134,14 @@ def cmd_simulate(args):
     from ._scenes import load_scene, parse_size
     from ._simulate import simulate
 
-    rig = _load_rig(args.rig)
     out = _out_path(args.out, (".npz", ".raw"), "--out")
-    truth = _out_path(args.truth, (".npz",), "--truth") if args.truth else None
+    truth = _out_path(args.truth, CUBE_SUFFIXES, "--truth") if args.truth else None
+    scene_file = args.scene if str(args.scene).endswith(".npz") else None
+    check_outputs(
+        {"--rig": args.rig, "--scene": scene_file},
+        {"--out": out, **_cube_outputs(truth, "--truth")},
+    )
+    rig = _load_rig(args.rig)
     if args.sweeps < 1:
         raise ValueError(f"--sweeps must be >= 1, got {args.sweeps}")
     scene = load_scene(args.scene, parse_size(args.size))
@@ -121,8 +185,20 @@ def cmd_render(args):
     from ._render import cube_to_srgb, write_png
 
     out = _out_path(args.out, (".png",), "--out")
+    check_outputs({"CUBE": args.cube}, {"--out": out})
     data = load_cube(args.cube)
-    write_png(out, cube_to_srgb(data["cube"], data["wavelengths_nm"]))
+    cube = data["cube"]
+    bad = ~np.all(np.isfinite(cube), axis=-1)
+    if bad.all():
+        raise ValueError(f"{args.cube}: no pixel has a finite spectrum; nothing to render")
+    if bad.any():
+        _problems(
+            args,
+            args.cube,
+            [f"{int(bad.sum())} pixel(s) with NaN/inf values drawn black"],
+        )
+        cube = np.where(bad[..., None], 0.0, cube)
+    write_png(out, cube_to_srgb(cube, data["wavelengths_nm"]))
     print(f"wrote {out}")
     return 0
 
@@ -130,7 +206,8 @@ def cmd_render(args):
 def cmd_info(args):
     from ._io import describe_events
 
-    info = describe_events(args.events)
+    info = describe_events(args.events, strict=args.strict)
+    _problems(args, args.events, _decode_problems(info.get("decode")))
     if args.json:
         print(json.dumps(info, indent=2))
     else:
@@ -142,21 +219,29 @@ def cmd_info(args):
 def cmd_reconstruct(args):
     if args.per_sweep:
         return _reconstruct_per_sweep(args)
-    if args.max_sweeps is not None or args.restart:
-        raise ValueError("--max-sweeps and --restart apply only with --per-sweep")
+    if args.max_sweeps is not None or args.restart or args.follow:
+        raise ValueError(
+            "--max-sweeps, --restart and --follow apply only with --per-sweep"
+        )
     from ._calibration import load_calibration
     from ._cubefile import save_cube
-    from ._io import read_events
     from ._reconstruct import reconstruct
     from ._render import cube_to_srgb, write_png
 
-    out = _out_path(args.out, (".npz",), "--out")
+    out = _out_path(args.out, CUBE_SUFFIXES, "--out")
     preview = _out_path(args.preview, (".png",), "--preview") if args.preview else None
+    check_outputs(
+        _calib_inputs(args), {**_cube_outputs(out, "--out"), "--preview": preview}
+    )
     cal = load_calibration(args.calib)
     rig = cal.rig
-    events = read_events(args.events)
+    events = _read_events(args, args.events)
     if len(events) == 0:
         raise ValueError(f"{args.events} holds no events")
+    if args.roi is not None:
+        roi = _parse_roi(args.roi)
+        cal = cal.crop(check_roi(roi, events.width, events.height), events.width)
+        events = events.crop(roi)
     t0 = time.perf_counter()
     cube, info = reconstruct(
         events,
@@ -168,9 +253,28 @@ def cmd_reconstruct(args):
         mesh=_mesh(args.devices),
     )
     elapsed = time.perf_counter() - t0
-    save_cube(out, cube, rig.wavelengths_nm, events_per_pixel=info.events, kkt=info.kkt)
-    if preview is not None:
-        write_png(preview, cube_to_srgb(cube, rig.wavelengths_nm))
+    notes = []
+    if info.first_sweep:
+        notes.append(
+            f"the first {info.first_sweep} sweep(s) from the start hold no events or "
+            "too few"
+        )
+    if info.sweeps_left_out:
+        notes.append(
+            f"{info.sweeps_left_out} sweep(s) with too few events, or apart from "
+            f"the others, left out ({info.events_left_out:,} events)"
+        )
+    if notes:
+        notes[-1] += f"; used {info.sweeps} sweep(s) from {info.t_start_us} µs"
+    _problems(args, args.events, notes)
+    from ._shard import is_main_process
+
+    if is_main_process():  # in a multi-process run, process 0 writes
+        save_cube(
+            out, cube, rig.wavelengths_nm, events_per_pixel=info.events, kkt=info.kkt
+        )
+        if preview is not None:
+            write_png(preview, cube_to_srgb(cube, rig.wavelengths_nm))
     n = events.height * events.width
     print(
         f"reconstructed {events.height}x{events.width}x{rig.channels} "
@@ -180,6 +284,25 @@ def cmd_reconstruct(args):
         + (f"; preview -> {preview}" if preview else "")
     )
     return 0
+
+
+def _parse_roi(text: str) -> tuple[int, ...]:
+    parts = text.split(",")
+    if len(parts) != 4 or not all(p.strip().lstrip("-").isdigit() for p in parts):
+        raise ValueError(f"--roi must be x0,y0,x1,y1 (4 integers), got {text!r}")
+    return tuple(int(p) for p in parts)
+
+
+def _calib_inputs(args) -> dict:
+    """reconstruct's inputs: events, calibration JSON and the maps file it names."""
+    ins = {"EVENTS": args.events, "--calib": args.calib}
+    try:
+        maps = json.loads(Path(args.calib).read_text()).get("threshold_map")
+        if isinstance(maps, str):
+            ins["the calibration's maps"] = Path(args.calib).parent / maps
+    except (OSError, ValueError, AttributeError):
+        pass  # load_calibration says what is wrong with the file
+    return ins
 
 
 def _cpu_devices(devices) -> None:
@@ -208,16 +331,43 @@ def _reconstruct_per_sweep(args):
     from ._stream import reconstruct_sweeps
 
     out = Path(args.out)
-    if out.suffix:
-        raise ValueError(f"with --per-sweep, --out is a folder, got {args.out!r}")
+    if out.suffix and out.suffix.lower() != ".zarr":
+        raise ValueError(
+            f"with --per-sweep, --out is a folder or a VIDEO.zarr store, got {args.out!r}"
+        )
     if args.preview:
         raise ValueError("with --per-sweep the preview is DIR/preview.gif")
     if args.t_start_us is not None:
         raise ValueError("--t-start-us does not apply to --per-sweep")
+    ins = _calib_inputs(args)
+    for name, path in ins.items():  # inputs must not be files the run manages
+        if Path(path).resolve().parent == out.resolve() and (
+            Path(path).name.startswith("sweep_")
+            or Path(path).name in ("index.json", "preview.gif")
+        ):
+            raise ValueError(f"{name} {path} lies in the output folder {out}")
+        if same_file(path, out):
+            raise ValueError(f"--out {out} is the input {name}")
     cal = load_calibration(args.calib)
     rig = cal.rig
     reader = EventReader(args.events)  # geometry only; the events are streamed
     cal.check_size(reader.height, reader.width)
+    roi = None
+    if args.roi is not None:
+        roi = check_roi(_parse_roi(args.roi), reader.width, reader.height)
+    stop = {"asked": False}
+    if args.follow:  # a signal ends the recording: finish the sweeps, then stop
+        import signal
+
+        def end_of_recording(signum, frame):
+            if stop["asked"]:
+                raise KeyboardInterrupt
+            stop["asked"] = True
+            print("evhsi reconstruct: stopping at the end of the data read so far "
+                  "(again to abort)", file=sys.stderr)  # fmt: skip
+
+        signal.signal(signal.SIGINT, end_of_recording)
+        signal.signal(signal.SIGTERM, end_of_recording)
     res = reconstruct_sweeps(
         args.events,
         cal,
@@ -228,15 +378,22 @@ def _reconstruct_per_sweep(args):
         mesh=_mesh(args.devices),
         overwrite=args.restart,
         progress=not args.quiet,
+        strict=args.strict,
+        follow=args.follow,
+        idle_timeout_s=args.idle_timeout,
+        should_stop=lambda: stop["asked"],
+        roi=roi,
     )
-    n = reader.height * reader.width
+    _problems(args, args.events, _decode_problems(res.decode))
+    n = res.index["height"] * res.index["width"]
     rate = res.reconstructed / res.solve_seconds if res.solve_seconds else 0.0
     low = res.low_event_sweeps
     from ._shard import is_main_process
 
     if is_main_process():
         print(
-            f"{res.sweeps} sweep(s) of {reader.height}x{reader.width}x{rig.channels} in "
+            f"{res.sweeps} sweep(s) of {res.index['height']}x{res.index['width']}x"
+            f"{rig.channels} in "
             f"{out}: {res.reconstructed} reconstructed in {res.seconds:.1f} s "
             f"({rate:.2f} sweeps/s, {rate * n:,.0f} px/s), {res.skipped} already done"
             + (f"; {len(low)} flagged low-events: {low[:10]}" if low else "")
@@ -278,7 +435,14 @@ def cmd_evaluate(args):
 def cmd_convert(args):
     from ._io import DecodeReport, convert_events
 
-    report = convert_events(args.src, args.dst)
+    kind = _file_kind(args.src)
+    if kind != "events":
+        return _convert_cubes(args, kind)
+    if args.sweep is not None:
+        raise ValueError("--sweep applies to a per-sweep folder or video store")
+    check_outputs({"IN": args.src}, {"OUT": args.dst})
+    report = convert_events(args.src, args.dst, strict=args.strict)
+    _problems(args, args.src, _decode_problems(report))
     skipped = {k: report[k] for k in DecodeReport.DEFECTS if report.get(k)}
     print(
         f"wrote {args.dst}"
@@ -287,14 +451,78 @@ def cmd_convert(args):
     return 0
 
 
+def _file_kind(path) -> str:
+    """What `convert` was given: "events", "cube" or "sweeps" (a per-sweep folder or
+    video store), by extension and, for `.npz`, by its keys."""
+    from ._video_store import holds_video
+
+    p = Path(path)
+    suffix = p.suffix.lower()
+    if (p / "index.json").is_file() or holds_video(p):
+        return "sweeps"
+    if suffix in (".hdr", ".img", ".zarr"):
+        return "cube"
+    if suffix == ".npz" and p.is_file():
+        try:
+            import zipfile
+
+            with zipfile.ZipFile(p) as z:
+                names = set(z.namelist())
+        except (OSError, zipfile.BadZipFile):
+            return "events"  # the events reader names the problem
+        return "cube" if "cube.npy" in names else "events"
+    return "events"
+
+
+def _convert_cubes(args, kind: str) -> int:
+    from ._cubefile import load_cube, save_cube
+    from ._stream import convert_sweeps, iter_sweep_cubes
+    from ._video_store import is_video_store
+
+    if kind == "sweeps" and args.sweep is None:
+        if not is_video_store(args.dst):
+            raise ValueError(
+                "a per-sweep folder or store converts to a video store (OUT.zarr), "
+                "or one sweep of it to a cube with --sweep K"
+            )
+        check_outputs({"IN": args.src}, {"OUT": args.dst})
+        n = convert_sweeps(args.src, args.dst)
+        print(f"wrote {args.dst} ({n} sweeps)")
+        return 0
+    out = _out_path(args.dst, CUBE_SUFFIXES, "OUT")
+    check_outputs({"IN": args.src}, _cube_outputs(out, "OUT"))
+    if kind == "sweeps":
+        found = None
+        for entry, data in iter_sweep_cubes(args.src):
+            if entry["sweep"] == args.sweep:
+                found = data
+                break
+        if found is None:
+            raise ValueError(f"{args.src} holds no finished sweep {args.sweep}")
+        data = found
+    else:
+        if args.sweep is not None:
+            raise ValueError("--sweep applies to a per-sweep folder or video store")
+        data = load_cube(args.src)
+    extra = {k: v for k, v in data.items() if k not in ("cube", "wavelengths_nm")}
+    save_cube(out, data["cube"], data["wavelengths_nm"], **extra)
+    print(f"wrote {out}")
+    return 0
+
+
 def cmd_calibrate(args):
     from ._calibrate import calibrate, save_calibration
-    from ._io import read_events
+    from ._calibration import Calibration
     from ._scenes import load_scene
 
     out = _out_path(args.out, (".json",), "--out")
+    chart_file = args.chart if str(args.chart).endswith(".npz") else None
+    check_outputs(
+        {"EVENTS": args.events, "--init": args.init, "--chart": chart_file},
+        {"--out": out, "the maps file": Calibration.maps_path(out)},
+    )
     init = _load_rig(args.init)
-    events = read_events(args.events)
+    events = _read_events(args, args.events)
     if len(events) == 0:
         raise ValueError(f"{args.events} holds no events")
     size = (events.height, events.width)
@@ -339,6 +567,35 @@ def cmd_calibrate(args):
     )
     print(cfg["comment"])
     print(f"wrote {out}")
+    return 0
+
+
+def cmd_view(args):
+    from ._viewer import CubeSource, make_server
+
+    if not 0 <= args.port <= 65535:
+        raise ValueError(f"--port must be in [0, 65535], got {args.port}")
+    source = CubeSource(args.cube, truth=args.truth)
+    try:
+        server = make_server(source, args.port)
+    except OSError as err:
+        raise ValueError(f"cannot listen on 127.0.0.1:{args.port} ({err.strerror})") from None
+    url = f"http://127.0.0.1:{server.server_address[1]}/"
+    print(
+        f"serving {args.cube} at {url} (Ctrl-C to stop; from another machine: "
+        f"ssh -L {server.server_address[1]}:127.0.0.1:{server.server_address[1]} HOST)",
+        flush=True,
+    )
+    if args.open:
+        import webbrowser
+
+        webbrowser.open(url)
+    try:
+        server.serve_forever()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        server.server_close()
     return 0
 
 
@@ -389,8 +646,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--truth",
-        metavar="TRUTH.npz",
-        help="also write the reflectance on the rig's channel grid (cube file)",
+        metavar="TRUTH",
+        help="also write the reflectance on the rig's channel grid (cube file: .npz, "
+        ".hdr ENVI or .zarr)",
     )
     _add_rig(p)
     p.add_argument("--sweeps", type=int, default=1, help="number of sweeps (default 1)")
@@ -425,7 +683,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Render a reflectance cube file to sRGB through the CIE 1931 2° "
         "observer under D65 (colour-science).",
     )
-    p.add_argument("cube", metavar="CUBE.npz")
+    p.add_argument("cube", metavar="CUBE", help="cube file: .npz, .hdr (ENVI) or .zarr")
     p.add_argument("--out", required=True, metavar="PNG")
     p.set_defaults(func=cmd_render)
 
@@ -437,6 +695,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("events", metavar="EVENTS")
     p.add_argument("--json", action="store_true", help="print one JSON object")
+    _add_strict(p)
     p.set_defaults(func=cmd_info)
 
     from ._reconstruct import SOLVERS
@@ -459,8 +718,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--out",
         required=True,
-        metavar="CUBE.npz|DIR",
-        help="cube file; with --per-sweep a folder (created) of per-sweep cube files",
+        metavar="CUBE|DIR",
+        help="cube file by extension: .npz, .hdr (ENVI: .hdr + .img) or .zarr; with "
+        "--per-sweep a folder (created) of per-sweep cube files, or a video store "
+        "VIDEO.zarr (Zarr: reflectance over time, wavelength and time coordinates)",
     )
     p.add_argument("--preview", metavar="PNG", help="also write an sRGB preview")
     p.add_argument(
@@ -485,6 +746,27 @@ def build_parser() -> argparse.ArgumentParser:
         help="per-sweep: discard what DIR holds instead of resuming",
     )
     p.add_argument(
+        "--follow",
+        action="store_true",
+        help="per-sweep, .raw: the file is still being written (live capture); "
+        "reconstruct each sweep as soon as it is complete, stop when the file has "
+        "not grown for --idle-timeout seconds or on SIGINT/SIGTERM (then the sweeps "
+        "read so far are finished; a second signal aborts)",
+    )
+    p.add_argument(
+        "--idle-timeout",
+        type=float,
+        default=10.0,
+        metavar="S",
+        help="with --follow: seconds without new data that end the recording (10)",
+    )
+    p.add_argument(
+        "--roi",
+        metavar="x0,y0,x1,y1",
+        help="reconstruct only this region (pixels, half-open; e.g. 0,0,320,180): "
+        "faster, for live views",
+    )
+    p.add_argument(
         "--devices",
         type=int,
         default=1,
@@ -506,6 +788,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="start of the first sweep in µs (default: first trigger, else 0)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_strict(p)
     p.set_defaults(func=cmd_reconstruct)
 
     p = sub.add_parser(
@@ -516,8 +799,8 @@ def build_parser() -> argparse.ArgumentParser:
         "(reflectance peak 1); RMS = sqrt(MSE); SSIM of each channel image "
         "(Gaussian window σ = 1.5), averaged over channels.",
     )
-    p.add_argument("cube", metavar="CUBE.npz")
-    p.add_argument("--truth", metavar="TRUTH.npz", required=True)
+    p.add_argument("cube", metavar="CUBE", help="cube file: .npz, .hdr (ENVI) or .zarr")
+    p.add_argument("--truth", metavar="TRUTH", required=True, help="cube file, ditto")
     p.add_argument(
         "--json",
         action="store_true",
@@ -527,12 +810,23 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser(
         "convert",
-        help="convert events between .raw (EVT 3.0/2.0 in) and .npz / .raw",
-        description="Convert an event file by extension: reads .raw (EVT 2.0 or 3.0) "
-        "or .npz, writes .raw (EVT 3.0) or .npz.",
+        help="convert events (.raw/.npz), cubes (.npz/.hdr/.zarr) or per-sweep video",
+        description="Convert by extension. Events: reads .raw (EVT 2.0 or 3.0) or "
+        ".npz, writes .raw (EVT 3.0) or .npz. Cubes: any of .npz, .hdr (ENVI, with "
+        ".img beside it) and .zarr to any other. Per-sweep video: a --per-sweep "
+        "folder to a video store OUT.zarr, or one sweep (--sweep K) of a folder or "
+        "store to a cube file.",
     )
     p.add_argument("src", metavar="IN")
     p.add_argument("dst", metavar="OUT")
+    p.add_argument(
+        "--sweep",
+        type=int,
+        default=None,
+        metavar="K",
+        help="from a per-sweep folder or video store: write sweep K as one cube",
+    )
+    _add_strict(p)
     p.set_defaults(func=cmd_convert)
 
     p = sub.add_parser(
@@ -573,7 +867,27 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="start of the first sweep in µs (default: first trigger, else 0)",
     )
+    _add_strict(p)
     p.set_defaults(func=cmd_calibrate)
+
+    p = sub.add_parser(
+        "view",
+        help="look at a cube or per-sweep video in the browser (127.0.0.1 only)",
+        description="Serve an interactive page on 127.0.0.1 (this machine only): the "
+        "sRGB rendering or one channel (wavelength slider), click pixels to plot and "
+        "compare their spectra (with the truth and SAM if --truth is given), and for "
+        "a per-sweep folder or VIDEO.zarr a sweep timeline with play and 'follow the "
+        "newest' (for a running --per-sweep --follow reconstruction). From a remote "
+        "machine, tunnel the port over SSH instead of exposing it: "
+        "`ssh -L PORT:127.0.0.1:PORT HOST`, then open http://127.0.0.1:PORT locally.",
+    )
+    p.add_argument("cube", metavar="CUBE|DIR", help="cube file, per-sweep folder or store")
+    p.add_argument("--truth", metavar="TRUTH", help="truth cube to plot beside")
+    p.add_argument(
+        "--port", type=int, default=8765, help="port on 127.0.0.1 (0: any free one)"
+    )
+    p.add_argument("--open", action="store_true", help="open it in the web browser")
+    p.set_defaults(func=cmd_view)
 
     p = sub.add_parser(
         "demo",
@@ -595,6 +909,10 @@ def main(argv=None) -> int:
         import jax
 
         jax.config.update("jax_enable_x64", True)
+    if args.command in ("simulate", "reconstruct", "calibrate", "demo"):
+        from ._cache import enable_compilation_cache
+
+        enable_compilation_cache()  # EVHSI_CACHE_DIR=off turns it off
     try:
         if args.distributed:
             from ._shard import initialize_distributed
@@ -609,6 +927,15 @@ def main(argv=None) -> int:
             raise
         msg = " ".join(str(err).split()) or type(err).__name__
         print(f"evhsi {args.command}: error: {msg}", file=sys.stderr)
+        return 2
+    except MemoryError:  # sizes are checked up front; this is what slipped through
+        if os.environ.get("EVHSI_DEBUG"):
+            raise
+        print(
+            f"evhsi {args.command}: error: not enough memory for this input (make "
+            "it smaller: fewer sweeps or a smaller image)",
+            file=sys.stderr,
+        )
         return 2
     except Exception as err:  # a bug, not a user mistake: still one line, say so
         if os.environ.get("EVHSI_DEBUG"):

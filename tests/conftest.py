@@ -2,6 +2,11 @@
 
 Tests run in float32 (the library default); float64 checks wrap their body in
 `with jax.enable_x64(True):` and build their inputs inside it.
+
+The persistent compilation cache is on for this process and, through
+`EVHSI_CACHE_DIR`, for every `evhsi` subprocess a test starts: a kernel compiled once
+serves them all (the user's cache folder unless EVHSI_CACHE_DIR says otherwise; set it
+to `off` to test without).
 """
 
 import os
@@ -11,6 +16,12 @@ import jax
 import pytest
 
 jax.config.update("jax_numpy_dtype_promotion", "strict")
+
+from evhsi_jax._cache import cache_dir, enable_compilation_cache  # noqa: E402
+
+if cache_dir() is not None:
+    os.environ.setdefault("EVHSI_CACHE_DIR", str(cache_dir()))
+enable_compilation_cache()
 
 
 def shared_data_dir() -> Path | None:

@@ -3,8 +3,6 @@ measures the noise it was given, the noise-aware reconstruction and its contract
 
 import hashlib
 import json
-import subprocess
-import sys
 
 import jax.numpy as jnp
 import jax.random as jr
@@ -15,6 +13,7 @@ import evhsi_jax as ev
 from evhsi_jax._reconstruct import ProblemConfig, group_pixels, pixel_system
 from evhsi_jax._sensor import exact_events_scan, photoreceptor_lowpass
 from evhsi_jax._simulate import threshold_maps
+from evhsi_jax.cli import main
 
 H, W = 16, 24
 
@@ -204,27 +203,20 @@ def test_calibration_measures_noise_and_hot_pixels():
 
 @pytest.fixture(scope="module")
 def realistic_files(tmp_path_factory):
+    """The CLI in-process (`main`: the same code as the `evhsi` program, without a
+    fresh compilation per subprocess)."""
     d = tmp_path_factory.mktemp("real")
     (d / "rig.json").write_text(json.dumps({"sensor": "realistic"}))
-    evhsi = [sys.executable, "-m", "evhsi_jax.cli"]
     for scene, name, sweeps in (("gray-chart", "gray", 2), ("colorchecker", "cc", 1)):
-        subprocess.run(
-            [*evhsi, "simulate", "--scene", scene, "--size", "24x36", "--sweeps",
-             str(sweeps), "--rig", str(d / "rig.json"), "--seed", "3", "--quiet",
-             "--out", str(d / f"{name}.npz"), "--truth", str(d / f"{name}_t.npz")],
-            check=True, capture_output=True,
-        )  # fmt: skip
+        assert main(["simulate", "--scene", scene, "--size", "16x32", "--sweeps",
+                     str(sweeps), "--rig", str(d / "rig.json"), "--seed", "3",
+                     "--quiet", "--out", str(d / f"{name}.npz"), "--truth",
+                     str(d / f"{name}_t.npz")]) == 0  # fmt: skip
     (d / "init.json").write_text(json.dumps({"photoreceptor_hz": 10000.0}))
-    subprocess.run(
-        [*evhsi, "calibrate", str(d / "gray.npz"), "--init", str(d / "init.json"),
-         "--out", str(d / "cal.json")],
-        check=True, capture_output=True,
-    )  # fmt: skip
-    subprocess.run(
-        [*evhsi, "reconstruct", str(d / "cc.npz"), "--calib", str(d / "cal.json"),
-         "--out", str(d / "cube.npz"), "--quiet"],
-        check=True, capture_output=True,
-    )  # fmt: skip
+    assert main(["calibrate", str(d / "gray.npz"), "--init", str(d / "init.json"),
+                 "--out", str(d / "cal.json")]) == 0  # fmt: skip
+    assert main(["reconstruct", str(d / "cc.npz"), "--calib", str(d / "cal.json"),
+                 "--out", str(d / "cube.npz"), "--quiet"]) == 0  # fmt: skip
     return d
 
 
@@ -240,16 +232,16 @@ def test_python_and_cli_reconstruct_the_same_cube(realistic_files):
         ev.reconstruct(ev.read_events(d / "cc.npz"), ev.Rig.load(d / "cal.json"))
 
 
-def test_calibrating_a_scene_that_is_not_the_chart_exits_2(realistic_files, tmp_path):
+def test_calibrating_a_scene_that_is_not_the_chart_fails(realistic_files):
+    """A ColorChecker capture calibrated as a gray chart: the fit cannot explain it
+    and says so (a ValueError: the CLI's one line and exit 2, see test_reliability)
+    instead of returning a rig. A short step budget keeps the test cheap; the full
+    budget ends the same way (README, Real sensors)."""
     d = realistic_files
-    r = subprocess.run(
-        [sys.executable, "-m", "evhsi_jax.cli", "calibrate", str(d / "cc.npz"),
-         "--out", str(tmp_path / "x.json")],
-        capture_output=True, text=True,
-    )  # fmt: skip
-    assert r.returncode == 2, r.stderr
-    assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1
-    assert not (tmp_path / "x.json").exists()
+    events = ev.read_events(d / "cc.npz")
+    chart = ev.load_scene("gray-chart", (events.height, events.width))
+    with pytest.raises(ValueError, match="does not fit its data"):
+        ev.calibrate(events, chart, ev.Rig(), max_steps=12)
 
 
 def test_linearised_lowpass_rows_explain_a_lowpassed_capture():

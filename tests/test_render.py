@@ -18,7 +18,7 @@ from evhsi_jax import (
     write_comparison_png,
     write_png,
 )
-from evhsi_jax._events import atomic_write
+from evhsi_jax._storage import atomic_write
 
 CENTRES = Rig().wavelengths_nm  # 402.5 … 757.5 nm, 5 nm channels
 

@@ -101,14 +101,25 @@ def test_distributed_settings_are_validated(monkeypatch):
 
 
 def test_distributed_passes_settings_to_jax(monkeypatch):
+    """The settings reach jax.distributed.initialize (the real two-process run is in
+    tests/test_reliability.py)."""
     seen = {}
     monkeypatch.setattr(jax.distributed, "is_initialized", lambda: False)
     monkeypatch.setattr(jax.distributed, "initialize", lambda **kw: seen.update(kw))
     monkeypatch.setenv("EVHSI_COORDINATOR", "host0:1234")
     monkeypatch.setenv("EVHSI_NUM_PROCESSES", "2")
-    monkeypatch.setenv("EVHSI_PROCESS_ID", "1")
-    assert initialize_distributed()
-    assert seen == dict(coordinator_address="host0:1234", num_processes=2, process_id=1)
+    monkeypatch.setenv("EVHSI_PROCESS_ID", "0")  # the coordinator: no port to probe
+    monkeypatch.setenv("EVHSI_DISTRIBUTED_TIMEOUT", "7")
+    initialize_distributed()
+    assert seen == dict(
+        coordinator_address="host0:1234",
+        num_processes=2,
+        process_id=0,
+        initialization_timeout=37,  # ours (7 s) fires first
+    )
+    monkeypatch.setenv("EVHSI_DISTRIBUTED_TIMEOUT", "soon")
+    with pytest.raises(ValueError, match="EVHSI_DISTRIBUTED_TIMEOUT"):
+        initialize_distributed()
 
 
 def test_cli_devices_asks_xla_for_host_devices(monkeypatch):

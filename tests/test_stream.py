@@ -12,6 +12,7 @@ import evhsi_jax as ev
 from evhsi_jax._dynamic import changed_pixels, dynamic_scene
 from evhsi_jax._stream import (
     INDEX_NAME,
+    LOCK_NAME,
     iter_sweep_cubes,
     load_sweep_index,
     reconstruct_sweeps,
@@ -94,7 +95,7 @@ def test_interrupted_run_resumes_without_redoing_or_corrupting(recording, full_r
     with pytest.raises(Crash):
         reconstruct_sweeps(path, rig, out, on_sweep=crash_after_two, **kw)
     files = sorted(p.name for p in out.iterdir())
-    assert files == [INDEX_NAME, sweep_file_name(0), sweep_file_name(1)]  # no temps
+    assert files == [LOCK_NAME, INDEX_NAME, sweep_file_name(0), sweep_file_name(1)]  # no temp
     index = load_sweep_index(out)
     assert not index["complete"] and [e["sweep"] for e in index["sweeps"]] == [0, 1]
     res = reconstruct_sweeps(path, rig, out, **kw)

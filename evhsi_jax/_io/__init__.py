@@ -16,6 +16,7 @@ from ._evt3_encode import evt3_word_count as evt3_word_count
 from ._evt3_encode import write_evt3 as write_evt3
 from ._files import convert_events as convert_events
 from ._files import describe_events as describe_events
+from ._files import replay_raw as replay_raw
 from ._files import write_events as write_events
 from ._header import RawHeader as RawHeader
 from ._header import parse_header as parse_header

@@ -40,7 +40,8 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from .._events import EventStream, atomic_write
+from .._events import EventStream
+from .._storage import atomic_write
 from . import _jit
 from ._header import format_header
 

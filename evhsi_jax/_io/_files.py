@@ -11,7 +11,7 @@ from .._events import EventStream
 from ._evt3_encode import write_evt3
 from ._reader import DEFAULT_CHUNK_BYTES, EventReader
 
-__all__ = ["write_events", "convert_events", "describe_events"]
+__all__ = ["write_events", "convert_events", "describe_events", "replay_raw"]
 
 
 def write_events(
@@ -115,3 +115,46 @@ def describe_events(
         info["header"] = dict(reader.header.fields)
         info["decode"] = reader.report.as_dict()
     return info
+
+
+def replay_raw(
+    src: str | os.PathLike,
+    dst: str | os.PathLike,
+    *,
+    speed: float = 1.0,
+    chunk_bytes: int = 4096,
+) -> list[tuple[float, int]]:
+    """Write a `.raw` recording to `dst` the way a recorder would: the header first,
+    then each block of data words when its last event is due (event time / `speed`
+    after the start, on the wall clock). For testing live reconstruction
+    (`reconstruct_sweeps(..., follow=True)`); `dst` is written in place, not
+    atomically, on purpose.
+
+    **Returns:** `(wall_time, last_event_us)` after each block written
+    (`time.time()` seconds): what latency measurements compare against.
+    """
+    import time
+
+    if speed <= 0:
+        raise ValueError(f"speed must be > 0, got {speed}")
+    reader = EventReader(src, chunk_bytes=chunk_bytes, workers=1)
+    if reader.format not in ("evt3", "evt2"):
+        raise ValueError(f"{src}: only .raw recordings can be replayed")
+    reader.build_index()
+    data = Path(src).read_bytes()
+    marks = []
+    with open(dst, "wb") as f:
+        f.write(data[: reader.data_offset])
+        f.flush()
+        start, t0 = time.time(), None
+        for cp in reader._index:
+            if cp.n_events:
+                t0 = cp.t_lo if t0 is None else t0
+                delay = start + (cp.t_hi - t0) / 1e6 / speed - time.time()
+                if delay > 0:
+                    time.sleep(delay)
+            f.write(data[cp.offset : cp.offset + cp.nbytes])
+            f.flush()
+            marks.append((time.time(), int(cp.t_hi)))
+        f.write(data[reader.data_offset + sum(c.nbytes for c in reader._index) :])
+    return marks

@@ -244,6 +244,50 @@ class EventReader:
             if c.x.size or c.trigger_t_us.size:
                 yield self._stream(c)
 
+    def follow(
+        self,
+        *,
+        idle_timeout_s: float = 10.0,
+        poll_s: float = 0.02,
+        should_stop=None,
+    ) -> Iterator[EventStream]:
+        """Chunks of a `.raw` file that a recorder is still writing, as they arrive.
+
+        Decodes the whole data words present, then waits for more (polling the file
+        size every `poll_s`), carrying the decoder state, so the chunks equal those of
+        reading the finished file. Ends when the file has not grown for
+        `idle_timeout_s` seconds, or when `should_stop()` (checked while waiting)
+        returns True; a partial word left at the end counts as `trailing_bytes`.
+        """
+        import time
+
+        if self._npz is not None:
+            raise ValueError(f"{self.path}: only .raw recordings can be followed")
+        codec = CODECS[self.format]
+        word = codec.word_bytes
+        self.report = DecodeReport()
+        state, offset = self._new_state(), self.data_offset
+        last_growth = time.monotonic()
+        while True:
+            size = self.path.stat().st_size
+            stop = offset + (size - offset) // word * word
+            if stop > offset:
+                for *_, c in decode_chunks(
+                    self.path, codec, offset, stop, state, self.report,
+                    **{**self._settings(offset, stop), "workers": 1},
+                ):  # fmt: skip
+                    if c.x.size or c.trigger_t_us.size:
+                        yield self._stream(c)
+                offset = stop
+                last_growth = time.monotonic()
+                continue
+            idle = time.monotonic() - last_growth
+            if idle >= idle_timeout_s or (should_stop is not None and should_stop()):
+                self.report.trailing_bytes += size - offset
+                self.file_bytes = size
+                return
+            time.sleep(poll_s)
+
     def read(self) -> EventStream:
         """The whole file as one `EventStream`."""
         if self._npz is not None:

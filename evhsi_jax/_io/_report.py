@@ -12,7 +12,11 @@ from __future__ import annotations
 
 import dataclasses
 
-__all__ = ["DecodeReport", "DecodeError"]
+__all__ = ["DecodeReport", "DecodeError", "QUIRK_STEP_US"]
+
+# The largest step back a working sensor produces: EVT 3.0's TIME_LOW spans 4096 µs
+# under one TIME_HIGH (EVT 2.0's 64 µs). Anything larger is time jumping back.
+QUIRK_STEP_US = 4096
 
 
 class DecodeError(ValueError):
@@ -87,6 +91,26 @@ class DecodeReport:
                 f"(largest step back {self.max_step_back_us} us)"
             )
         return text
+
+    def problems(self) -> list[str]:
+        """What a user must hear about, one phrase each (empty for a clean file):
+        skipped defects, and timestamps that went back. Small step-backs (below
+        `QUIRK_STEP_US`) are a sensor quirk and stay silent; a larger one means time
+        jumped back (a concatenated or damaged file) and is listed."""
+        out = [f"{getattr(self, k)} {k.replace('_', ' ')} skipped" for k in self.DEFECTS
+               if getattr(self, k)]  # fmt: skip
+        if self.time_jumped_back:
+            out.append(
+                f"time jumps back by up to {self.max_step_back_us} µs ("
+                f"{self.time_clamped} timestamps held at the running maximum; a "
+                "concatenated or damaged recording?)"
+            )
+        return out
+
+    @property
+    def time_jumped_back(self) -> bool:
+        """True when some timestamp stepped back by more than a sensor quirk can."""
+        return self.time_clamped > 0 and self.max_step_back_us > QUIRK_STEP_US
 
     def as_dict(self) -> dict:
         """The counters as a plain dict (JSON-ready)."""

@@ -21,6 +21,7 @@ from tqdm.auto import tqdm
 from .._calibration import Calibration
 from .._events import EventStream
 from .._illumination import band_table
+from .._limits import check_fits
 from .._rig import Rig
 from . import _solvers
 from ._pixels import group_pixels
@@ -91,6 +92,61 @@ class ReconstructionInfo:
     sweeps: int
     hot_pixels: np.ndarray | None = None  # hot pixels (filled from neighbours)
     dropped_events: int = 0  # events outside the lit intervals or of hot pixels
+    sweeps_left_out: int = 0  # sweeps with events not used (`select_sweeps`)
+    events_left_out: int = 0  # the events of those sweeps
+    first_sweep: int = 0  # sweeps between the asked start and the first one used
+
+
+MAX_WHOLE_SWEEPS = 32
+LOW_SWEEP_REL = 0.5
+
+
+def select_sweeps(
+    t_us: np.ndarray,
+    t_start_us: int,
+    period_us: float,
+    *,
+    rel: float = LOW_SWEEP_REL,
+    max_sweeps: int = MAX_WHOLE_SWEEPS,
+) -> tuple[int, int, int]:
+    """The sweeps of a whole-file reconstruction: the longest run of consecutive lit
+    sweeps.
+
+    The per-pixel model expects the band to make events in every sweep it spans (its
+    anti-drift rows pull a pixel to the baseline where no event says otherwise), so a
+    sweep without events — light off at the start, a `t_start_us` one period early, a
+    stray timestamp far away, a partial last sweep — must not be in it. A sweep is
+    *lit* when it holds at least `rel` × the median events of the sweeps that hold
+    any; the answer uses the longest run of consecutive lit sweeps (the earliest of
+    equals), at most `max_sweeps` of it (each sweep adds rows to every pixel's
+    system). Memory follows the number of events, not the time span.
+
+    **Returns:** `(first, sweeps, left_out)` — the run's first sweep (counted from
+    `t_start_us`), its length in sweeps, and the number of sweeps with events that
+    were left out.
+    """
+    if t_us.size == 0:
+        return 0, 1, 0
+    k = np.floor((t_us - t_start_us) / float(period_us)).astype(np.int64)
+    starts = np.flatnonzero(np.diff(k, prepend=k[0] - 1))  # k is sorted
+    ks = k[starts]
+    counts = np.diff(np.append(starts, k.size))
+    lit = counts >= rel * np.median(counts)
+    best = (0, -1)  # (length, first index into ks)
+    i = 0
+    while i < ks.size:
+        if not lit[i]:
+            i += 1
+            continue
+        j = i
+        while j + 1 < ks.size and lit[j + 1] and ks[j + 1] == ks[j] + 1:
+            j += 1
+        if j - i + 1 > best[0]:
+            best = (j - i + 1, i)
+        i = j + 1
+    n, first = best
+    n = min(n, max_sweeps)
+    return int(ks[first]), n, int(ks.size - n)
 
 
 def _no_event_answer(rig: Rig, m: int) -> float:
@@ -305,7 +361,9 @@ def reconstruct(
     - `threshold_on_map`, `threshold_off_map`: optional per-pixel thresholds `(H, W)`
       (log units) from a calibration; default the rig's global values.
     - `t_start_us`: time at which the recording's first sweep starts (sweep phase 0);
-      default the first trigger, else 0.
+      default the first trigger, else 0. Sweeps without events (and partial ones)
+      are left out: the longest run of lit sweeps is used, at most
+      `MAX_WHOLE_SWEEPS` (:func:`select_sweeps`; the info says how many were not).
     - `reference_us`: optional `(H, W)` times (µs, same clock as the events; NaN for
       none) at which each pixel's reference level was last set before `t_start_us` —
       the release $τ + η$ after its last earlier event. The pixel's first event then
@@ -348,6 +406,11 @@ def reconstruct(
     cfg = config or ProblemConfig()
     h, w = events.height, events.width
     cal.check_size(h, w)
+    # The cube, its float64 work copies and the per-pixel bookkeeping.
+    check_fits(
+        float(h) * w * (16 * rig.channels + 64),
+        f"a {h}x{w}x{rig.channels} reconstruction",
+    )
     if threshold_on_map is None and cal.threshold_on is not None:
         threshold_on_map, threshold_off_map = cal.threshold_on, cal.threshold_off
     noise = noise_model(rig)
@@ -361,8 +424,12 @@ def reconstruct(
             f"{t_start_us} µs"
         )
     period = float(rig.period_us)
-    duration = float(events.t_us[-1] - t_start_us) if len(events) else 0.0
-    sweeps = max(1, math.ceil((duration + 1.0) / period))
+    n_all = len(events)
+    first, sweeps, left_out = select_sweeps(events.t_us, t_start_us, period)
+    if first or left_out:
+        t_start_us = int(round(t_start_us + first * period))
+        stop = int(math.ceil(t_start_us + sweeps * period))
+        events = events.time_window(t_start_us, stop)
     sub = max(1, min(sub_batch, chunk_pixels))
     solve, n_dev = _solve_chunk, 1
     if mesh is not None:
@@ -460,6 +527,9 @@ def reconstruct(
         sweeps=sweeps,
         hot_pixels=hot,
         dropped_events=n_dropped,
+        sweeps_left_out=left_out,
+        events_left_out=n_all - len(events),
+        first_sweep=first,
     )
     return cube, info
 
