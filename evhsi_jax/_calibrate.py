@@ -351,6 +351,8 @@ class _FitData(eqx.Module):
     spectra: Any
     fixed_traces: Any
     overlap: Any  # the band's overlap table: the band is not fitted, so computed once
+    overlap_lo_nm: float = eqx.field(static=True)
+    overlap_step_nm: float = eqx.field(static=True)
     fit_baseline: bool = eqx.field(static=True)
 
 
@@ -361,9 +363,13 @@ def _fit_residuals(params, args):
     if not fit.fit_baseline:
         r = r.with_leaves(baseline_rel=fit.rig.baseline_rel)
     traces = (
-        fit.fixed_traces
+        BandTable(fit.fixed_traces, fit.overlap_lo_nm, fit.overlap_step_nm)
         if fit.fixed_traces is not None
-        else spectral_traces(r, fit.spectra, fit.overlap)
+        else spectral_traces(
+            r,
+            fit.spectra,
+            BandTable(fit.overlap, fit.overlap_lo_nm, fit.overlap_step_nm),
+        )
     )
     res = chart_residuals(r, fit.dev, traces, per_pixel=profile)
     if keep is not None:
@@ -709,7 +715,9 @@ def _calibrate64(
     dtype = rig.fwhm_nm.dtype
     dev = _device(data, dtype)
     basis = _response_basis(rig, response_degree)
-    fixed_traces = None if response_degree else spectral_traces(rig, data.spectra)
+    fixed_traces = (  # the table's values (a BandTable is not a pytree leaf holder)
+        None if response_degree else spectral_traces(rig, data.spectra).values
+    )
     p0 = {
         "log_on": jnp.zeros((), dtype),
         "log_off": jnp.zeros((), dtype),
@@ -724,8 +732,10 @@ def _calibrate64(
     # Everything the residuals read travels as arguments (not closed over), so each
     # compiled function depends on shapes only: one compilation per shape in a
     # process, and the persistent cache serves the next process.
+    overlap = band_overlap(rig)
     fit = _FitData(rig, basis, dev, jnp.asarray(data.spectra, dtype), fixed_traces,
-                   band_overlap(rig), fit_baseline)  # fmt: skip
+                   overlap.values, overlap.lo_nm, overlap.step_nm,
+                   fit_baseline)  # fmt: skip
 
     def residuals(params, args):
         profile, keep = args if isinstance(args, tuple) else (args, None)

@@ -413,6 +413,10 @@ def cmd_evaluate(args):
         )
     if not np.allclose(est["wavelengths_nm"], ref["wavelengths_nm"]):
         raise ValueError("cube and truth have different wavelengths_nm")
+    for name, data in ((args.cube, est), (args.truth, ref)):
+        bad = int(np.count_nonzero(~np.isfinite(data["cube"])))
+        if bad:  # the metrics would be NaN or meaningless
+            raise ValueError(f"{name} holds {bad} NaN/inf value(s): metrics undefined")
     res = evaluate(est["cube"], ref["cube"])
     if args.json:
         print(json.dumps(res))

@@ -49,3 +49,23 @@ def io_backend(request):
         pytest.skip("no numba")
     with _jit.use_backend(request.param):
         yield request.param
+
+
+# Modules that take minutes (calibration fits, design gradients, notebooks): run them
+# first, so that with pytest-xdist (`make test`: `-n 2 --dist loadfile`) the short
+# modules fill the other worker instead of one long module ending the run alone.
+HEAVY_FIRST = (
+    "test_realism_fit.py",
+    "test_realism_calibration.py",
+    "test_design.py",
+    "test_notebooks.py",
+    "test_calibrate.py",
+    "test_reconstruct.py",
+    "test_shard.py",
+    "test_reliability.py",
+)
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: i for i, name in enumerate(HEAVY_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))

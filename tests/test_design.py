@@ -183,6 +183,7 @@ def test_design_space_round_trip_and_validation():
         ev.DesignSpace(fwhm_nm=(5.0, 80.0))
 
 
+@pytest.mark.slow  # ~1 min of compilation; notebooks/03_optical_design runs the optimiser
 def test_optimiser_keeps_bounds_and_lowers_loss(tmp_path):
     """Large Adam steps from the default (rate limit broken): every iterate inside
     the box, the loss and the event rate go down, the trajectory file is written."""

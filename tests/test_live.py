@@ -70,7 +70,7 @@ def test_cli_follow_ends_on_idle_and_on_a_signal(recording, tmp_path, capsys):
     assert len(ev.load_sweep_index(tmp_path / "a")["sweeps"]) == SWEEPS
     # SIGTERM while the writer is half-way: the sweeps read so far are finished
     live = tmp_path / "live.raw"
-    writer = _writer(d / "rec.raw", live, speed=0.05)  # 8 s: time to stop it
+    writer = _writer(d / "rec.raw", live, speed=0.02)  # 20 s: time to stop it
     proc = subprocess.Popen(
         [sys.executable, "-m", "evhsi_jax.cli", "reconstruct", str(live), "--calib",
          str(d / "cal.json"), "--out", str(tmp_path / "b"), "--per-sweep", "--follow",

@@ -202,6 +202,9 @@ def test_render_refuses_an_all_nan_cube_and_reports_inf(capsys, tmp_path):
     ev.save_cube(tmp_path / "inf.npz", cube, wl)
     code, _, err = run(capsys, "render", tmp_path / "inf.npz", "--out", tmp_path / "b.png")
     assert code == 0 and err.count("\n") == 1 and "1 pixel(s) with NaN/inf" in err
+    code, _, err = run(capsys, "evaluate", tmp_path / "inf.npz", "--truth",
+                       tmp_path / "nan.npz")  # fmt: skip
+    one_line_error(code, err, "inf.npz", "NaN/inf")
 
 
 # --- sizes and corrupt files ------------------------------------------------------------

@@ -54,6 +54,7 @@ FOUR_DEVICES = textwrap.dedent(
 )
 
 
+@pytest.mark.slow  # ~1 min; the two-process run of test_reliability covers several devices
 def test_four_cpu_devices_equal_one():
     env = dict(os.environ)
     env["XLA_FLAGS"] = (

@@ -1,6 +1,7 @@
 """`evhsi view`: the server's API, and the page in a real headless browser (Chromium
 through Selenium: load, click a pixel, the plotted spectrum is the cube's)."""
 
+import gc
 import json
 import shutil
 import subprocess
@@ -63,6 +64,7 @@ def test_api_serves_meta_images_and_spectra(server, cube_files):
     assert _get(server + "api/image.png?channel=10")[:4] == b"\x89PNG"
     with pytest.raises(urllib.error.HTTPError) as err:
         _get(server + "api/spectrum?x=40&y=2")
+    err.value.close()  # it holds the response open
     assert err.value.code == 400
 
 
@@ -140,3 +142,4 @@ def test_page_in_a_headless_browser(server, cube_files):
         browser.save_screenshot(str(SCREENSHOTS / "viewer.png"))
     finally:
         browser.quit()
+    gc.collect()  # surface any socket left open here, not in a later test

@@ -1,0 +1,87 @@
+"""Whole-process time of `evhsi reconstruct` (and `evhsi calibrate`) with an empty and
+then a filled persistent compilation cache: what a user waits for at the prompt.
+
+Simulates a ColorChecker capture and a gray chart (paper rig) of `--size`, then runs
+each command `--repeats` times in fresh processes: the first run with an empty cache
+folder (compiles everything), the rest with the cache it filled. Prints the times
+(medians of the warm runs) and this machine's float32 matmul GFLOP/s.
+
+    .venv/bin/python experiments/bench_startup.py [--size 96x144] [--repeats 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+EVHSI = [sys.executable, "-m", "evhsi_jax.cli"]
+
+
+def matmul_gflops() -> float:
+    code = (
+        "import time, jax, jax.numpy as jnp, numpy as np\n"
+        "a = jnp.ones((1024, 1024), jnp.float32); f = jax.jit(lambda x: x @ x)\n"
+        "f(a).block_until_ready(); t = []\n"
+        "for _ in range(5):\n"
+        "    s = time.perf_counter(); f(a).block_until_ready(); "
+        "t.append(time.perf_counter() - s)\n"
+        "print(2 * 1024**3 / float(np.median(t)) / 1e9)\n"
+    )
+    return float(subprocess.run([sys.executable, "-c", code], capture_output=True,
+                                text=True, check=True).stdout)  # fmt: skip
+
+
+def timed(argv, env) -> float:
+    t = time.perf_counter()
+    subprocess.run([*EVHSI, *map(str, argv)], env=env, check=True, capture_output=True)
+    return time.perf_counter() - t
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--size", default="96x144")
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--json", default="experiments/results/bench_startup.json")
+    a = p.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        d = Path(tmp)
+        env = {**os.environ, "EVHSI_CACHE_DIR": str(d / "cache")}
+        off = {**os.environ, "EVHSI_CACHE_DIR": "off"}
+        subprocess.run([*EVHSI, "simulate", "--scene", "colorchecker", "--size", a.size,
+                        "--out", d / "cc.raw", "--quiet"], check=True, env=off)  # fmt: skip
+        subprocess.run([*EVHSI, "simulate", "--scene", "gray-chart", "--size", a.size,
+                        "--sweeps", "2", "--out", d / "gray.npz", "--quiet"], check=True,
+                       env=off)  # fmt: skip
+        (d / "cal.json").write_text("{}")
+        jobs = {
+            "reconstruct": ["reconstruct", d / "cc.raw", "--calib", d / "cal.json",
+                            "--out", d / "cube.npz", "--quiet"],  # fmt: skip
+            "calibrate": ["calibrate", d / "gray.npz", "--out", d / "c.json"],
+        }
+        out = {"size": a.size, "matmul_gflops": matmul_gflops()}
+        for name, argv in jobs.items():
+            no_cache = timed(argv, off)
+            first = timed(argv, env)
+            warm = [timed(argv, env) for _ in range(a.repeats)]
+            out[name] = {
+                "no_cache_s": round(no_cache, 2),
+                "first_run_s": round(first, 2),
+                "cached_median_s": round(float(np.median(warm)), 2),
+                "cached_runs_s": [round(v, 2) for v in warm],
+            }
+            print(name, out[name], flush=True)
+    print(json.dumps(out, indent=1))
+    Path(a.json).parent.mkdir(parents=True, exist_ok=True)
+    Path(a.json).write_text(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main()

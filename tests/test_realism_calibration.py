@@ -1,0 +1,55 @@
+"""Real sensors, calibration side: the calibration measures the noise it was given,
+fits the sweep's curvature under a known low-pass, refuses what it cannot fit, and the
+CLI and Python reconstruct the same cube from its file (split from test_realism.py so
+the two halves run in parallel)."""
+
+import json
+
+import numpy as np
+import pytest
+
+import evhsi_jax as ev
+from evhsi_jax.cli import main
+
+
+@pytest.fixture(scope="module")
+def realistic_files(tmp_path_factory):
+    """The CLI in-process (`main`: the same code as the `evhsi` program, without a
+    fresh compilation per subprocess)."""
+    d = tmp_path_factory.mktemp("real")
+    (d / "rig.json").write_text(json.dumps({"sensor": "realistic"}))
+    for scene, name, sweeps in (("gray-chart", "gray", 2), ("colorchecker", "cc", 1)):
+        assert main(["simulate", "--scene", scene, "--size", "16x32", "--sweeps",
+                     str(sweeps), "--rig", str(d / "rig.json"), "--seed", "3",
+                     "--quiet", "--out", str(d / f"{name}.npz"), "--truth",
+                     str(d / f"{name}_t.npz")]) == 0  # fmt: skip
+    (d / "init.json").write_text(json.dumps({"photoreceptor_hz": 10000.0}))
+    assert main(["calibrate", str(d / "gray.npz"), "--init", str(d / "init.json"),
+                 "--out", str(d / "cal.json")]) == 0  # fmt: skip
+    assert main(["reconstruct", str(d / "cc.npz"), "--calib", str(d / "cal.json"),
+                 "--out", str(d / "cube.npz"), "--quiet"]) == 0  # fmt: skip
+    return d
+
+
+def test_python_and_cli_reconstruct_the_same_cube(realistic_files):
+    d = realistic_files
+    cal = ev.load_calibration(d / "cal.json")
+    assert cal.threshold_on is not None and cal.hot_pixels is not None
+    assert cal.rig.effects.threshold_noise > 0
+    cube = ev.reconstruct(ev.read_events(d / "cc.npz"), cal)
+    np.testing.assert_array_equal(cube, np.load(d / "cube.npz")["cube"])
+    assert cube.min() >= 0.0 and cube.max() <= 1.5
+    with pytest.raises(ValueError, match="load_calibration"):
+        ev.reconstruct(ev.read_events(d / "cc.npz"), ev.Rig.load(d / "cal.json"))
+
+
+def test_calibrating_a_scene_that_is_not_the_chart_fails(realistic_files):
+    """A ColorChecker capture calibrated as a gray chart: the fit cannot explain it
+    and says so (a ValueError: the CLI's one line and exit 2, see test_reliability)
+    instead of returning a rig. A short step budget keeps the test cheap; the full
+    budget ends the same way (README, Real sensors)."""
+    d = realistic_files
+    events = ev.read_events(d / "cc.npz")
+    chart = ev.load_scene("gray-chart", (events.height, events.width))
+    with pytest.raises(ValueError, match="does not fit its data"):
+        ev.calibrate(events, chart, ev.Rig(), max_steps=12)
