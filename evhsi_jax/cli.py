@@ -325,10 +325,30 @@ def _mesh(devices):
     return pixel_mesh(None if devices == 0 else devices)
 
 
+def _run_sweeps(args, cal, out, roi, stop):
+    from ._stream import reconstruct_sweeps
+
+    return reconstruct_sweeps(
+        args.events,
+        cal,
+        out,
+        solver=args.solver,
+        max_sweeps=args.max_sweeps,
+        low_event_rel=args.low_events,
+        mesh=_mesh(args.devices),
+        overwrite=args.restart,
+        progress=not args.quiet,
+        strict=args.strict,
+        follow=args.follow,
+        idle_timeout_s=args.idle_timeout,
+        should_stop=lambda: stop["asked"],
+        roi=roi,
+    )
+
+
 def _reconstruct_per_sweep(args):
     from ._calibration import load_calibration
     from ._io import EventReader
-    from ._stream import reconstruct_sweeps
 
     out = Path(args.out)
     if out.suffix and out.suffix.lower() != ".zarr":
@@ -356,6 +376,7 @@ def _reconstruct_per_sweep(args):
     if args.roi is not None:
         roi = check_roi(_parse_roi(args.roi), reader.width, reader.height)
     stop = {"asked": False}
+    previous = {}
     if args.follow:  # a signal ends the recording: finish the sweeps, then stop
         import signal
 
@@ -366,24 +387,16 @@ def _reconstruct_per_sweep(args):
             print("evhsi reconstruct: stopping at the end of the data read so far "
                   "(again to abort)", file=sys.stderr)  # fmt: skip
 
-        signal.signal(signal.SIGINT, end_of_recording)
-        signal.signal(signal.SIGTERM, end_of_recording)
-    res = reconstruct_sweeps(
-        args.events,
-        cal,
-        out,
-        solver=args.solver,
-        max_sweeps=args.max_sweeps,
-        low_event_rel=args.low_events,
-        mesh=_mesh(args.devices),
-        overwrite=args.restart,
-        progress=not args.quiet,
-        strict=args.strict,
-        follow=args.follow,
-        idle_timeout_s=args.idle_timeout,
-        should_stop=lambda: stop["asked"],
-        roi=roi,
-    )
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(sig, end_of_recording)
+    try:
+        res = _run_sweeps(args, cal, out, roi, stop)
+    finally:  # the handlers are this run's only (main() may be called in-process)
+        if previous:
+            import signal
+
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
     _problems(args, args.events, _decode_problems(res.decode))
     n = res.index["height"] * res.index["width"]
     rate = res.reconstructed / res.solve_seconds if res.solve_seconds else 0.0

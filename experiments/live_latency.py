@@ -17,7 +17,8 @@ streaming path on the finished file (medians of 3, one process) and the largest 
 region whose rate is ≥ 10 and ≥ 30 sweeps/s. The same run's float32 matmul GFLOP/s is
 printed beside (machines differ).
 
-    .venv/bin/python experiments/live_latency.py [--size 48x64] [--sweeps 60] [--json OUT]
+    .venv/bin/python experiments/live_latency.py [--size 64x96] [--sweeps 300]
+        [--speed 1] [--json OUT]
 """
 
 from __future__ import annotations
@@ -111,6 +112,15 @@ def main() -> None:
     p.add_argument("--size", default="128x160")
     p.add_argument("--sweeps", type=int, default=45)
     p.add_argument("--json", default="experiments/results/live_latency.json")
+    p.add_argument(
+        "--live-side", type=int, default=None, help="square region of the live run"
+    )
+    p.add_argument(
+        "--speed",
+        type=float,
+        default=1.0,
+        help="replay speed of the 30 sweeps/s recording (1/3: 10 sweeps/s)",
+    )
     a = p.parse_args()
     h, w = (int(v) for v in a.size.split("x"))
     ev.enable_compilation_cache()
@@ -129,11 +139,14 @@ def main() -> None:
             r: max([s for s, v in rates.items() if v >= r], default=None)
             for r in (10, 30)
         }
-        side = best[30] or 16
         (tmp / "live").mkdir()
-        live = live_run(raw, cal, tmp / "live" / "out", roi=(0, 0, side, side))
+        rate = 30 * a.speed
+        side = a.live_side or (best[10] if rate <= 10 else best[30]) or 16
+        live = live_run(raw, cal, tmp / "live" / "out", roi=(0, 0, side, side),
+                        speed=a.speed)  # fmt: skip
         live["roi"] = [0, 0, side, side]
-        print(f"live, region {side}x{side}, 30 sweeps/s: {live}", flush=True)
+        live["sweeps_per_s"] = rate
+        print(f"live, region {side}x{side}, {rate:.0f} sweeps/s: {live}", flush=True)
     out = {
         "matmul_gflops": gf,
         "size": [h, w],

@@ -2,6 +2,7 @@
 its real rate (`reconstruct_sweeps(..., follow=True)`, `evhsi reconstruct --per-sweep
 --follow`), every sweep equal to the run on the finished file; regions (`--roi`)."""
 
+import signal
 import subprocess
 import sys
 import time
@@ -64,10 +65,13 @@ def test_follow_a_file_being_written(recording, tmp_path):
 
 def test_cli_follow_ends_on_idle_and_on_a_signal(recording, tmp_path, capsys):
     d, _ = recording
+    before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
     assert main(["reconstruct", str(d / "rec.raw"), "--calib", str(d / "cal.json"),
                  "--out", str(tmp_path / "a"), "--per-sweep", "--follow",
                  "--idle-timeout", "0.3", "--quiet"]) == 0  # fmt: skip
     assert len(ev.load_sweep_index(tmp_path / "a")["sweeps"]) == SWEEPS
+    # the run's signal handlers are gone again (main() may run in-process)
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
     # SIGTERM while the writer is half-way: the sweeps read so far are finished
     live = tmp_path / "live.raw"
     writer = _writer(d / "rec.raw", live, speed=0.02)  # 20 s: time to stop it

@@ -23,7 +23,9 @@ def realistic_files(tmp_path_factory):
                      str(sweeps), "--rig", str(d / "rig.json"), "--seed", "3",
                      "--quiet", "--out", str(d / f"{name}.npz"), "--truth",
                      str(d / f"{name}_t.npz")]) == 0  # fmt: skip
-    (d / "init.json").write_text(json.dumps({"photoreceptor_hz": 10000.0}))
+    # (a known photoreceptor cut-off in --init would model the low-pass too, at twice
+    # the calibration time: tests/test_realism_fit.py checks that path, -m slow)
+    (d / "init.json").write_text(json.dumps({"threshold_on": 0.15}))
     assert main(["calibrate", str(d / "gray.npz"), "--init", str(d / "init.json"),
                  "--out", str(d / "cal.json")]) == 0  # fmt: skip
     assert main(["reconstruct", str(d / "cc.npz"), "--calib", str(d / "cal.json"),

@@ -1,8 +1,9 @@
 """Real sensors, the calibration's fit: it measures the noise it was given and fits
-the sweep's curvature under a known photoreceptor low-pass."""
+the sweep's curvature (also under a known photoreceptor low-pass: `-m slow`)."""
 
 import jax.random as jr
 import numpy as np
+import pytest
 
 import evhsi_jax as ev
 
@@ -18,6 +19,15 @@ def test_calibration_measures_noise_and_hot_pixels():
     assert res.converged
 
 
+def test_calibration_fits_curvature():
+    chart = ev.load_scene("gray-chart", (24, 32))
+    events = ev.simulate(chart, ev.Rig(sweep_curvature_nm=3.0), sweeps=2, key=jr.key(6))
+    res = ev.calibrate(events, chart, ev.Rig())
+    assert abs(float(res.rig.sweep_curvature_nm) - 3.0) < 0.5
+    assert res.rig.effects.threshold_noise < 0.002  # no noise where there was none
+
+
+@pytest.mark.slow  # ~1-2 min: the low-passed chart traces cost most of the fit
 def test_calibration_fits_curvature_and_a_known_lowpass():
     chart = ev.load_scene("gray-chart", (24, 32))
     true = ev.Rig(sweep_curvature_nm=3.0, photoreceptor_hz=10000.0)
