@@ -49,6 +49,7 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--size", default="96x144")
     p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--jobs", default="reconstruct,calibrate", help="which commands")
     p.add_argument("--json", default="experiments/results/bench_startup.json")
     a = p.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
@@ -68,6 +69,8 @@ def main() -> None:
         }
         out = {"size": a.size, "matmul_gflops": matmul_gflops()}
         for name, argv in jobs.items():
+            if name not in a.jobs.split(","):
+                continue
             no_cache = timed(argv, off)
             first = timed(argv, env)
             warm = [timed(argv, env) for _ in range(a.repeats)]

@@ -79,7 +79,12 @@ def live_run(raw: Path, cal, out: Path, roi=None, speed: float = 1.0) -> dict:
         i = min(i, len(m_wall) - 1)
         lat.append(t_cube - m_wall[i])
     lat = np.array(lat[1:-1])  # not the first (compilation) nor the last (idle end)
+    # every sweep against the same run on the finished file
+    ev.reconstruct_sweeps(raw, cal, out.parent / "offline", roi=roi, preview=False)
+    pairs = zip(ev.iter_sweep_cubes(out), ev.iter_sweep_cubes(out.parent / "offline"))
+    equal = [bool(np.array_equal(a["cube"], b["cube"])) for (_, a), (_, b) in pairs]
     return {
+        "sweeps_equal_to_offline": f"{sum(equal)} of {len(equal)}",
         "sweeps": res.reconstructed,
         "latency_ms_median": float(np.median(lat) * 1e3),
         "latency_ms_p90": float(np.percentile(lat, 90) * 1e3),
