@@ -375,6 +375,8 @@ def _reconstruct_per_sweep(args):
     roi = None
     if args.roi is not None:
         roi = check_roi(_parse_roi(args.roi), reader.width, reader.height)
+    if not args.idle_timeout > 0:
+        raise ValueError(f"--idle-timeout must be > 0 s, got {args.idle_timeout}")
     stop = {"asked": False}
     previous = {}
     if args.follow:  # a signal ends the recording: finish the sweeps, then stop
@@ -901,7 +903,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("cube", metavar="CUBE|DIR", help="cube file, per-sweep folder or store")
     p.add_argument("--truth", metavar="TRUTH", help="truth cube to plot beside")
     p.add_argument(
-        "--port", type=int, default=8765, help="port on 127.0.0.1 (0: any free one)"
+        "--port",
+        type=int,
+        default=8765,
+        help="port on 127.0.0.1 (default 8765; 0: any free one)",
     )
     p.add_argument("--open", action="store_true", help="open it in the web browser")
     p.set_defaults(func=cmd_view)
