@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._storage import atomic_write, read_npz
+from ._storage import atomic_write, one_line, read_npz
 
 __all__ = ["save_cube", "load_cube", "CUBE_SUFFIXES", "ENVI_IGNORE"]
 
@@ -155,7 +155,7 @@ def _load_envi(hdr: Path) -> dict:
         cube = np.asarray(img.load(), dtype=np.float32)
         meta = img.metadata
     except Exception as err:  # SPy raises its own types for bad headers and sizes
-        msg = " ".join(str(err).split())[:160] or type(err).__name__
+        msg = one_line(err, 160)
         raise ValueError(f"{hdr} is not a readable ENVI cube ({msg})") from None
     raw_wl = meta.get("wavelength")
     if raw_wl is None:
@@ -225,7 +225,7 @@ def _load_zarr(path: Path) -> dict:
     try:
         ds = xr.open_zarr(path)
     except Exception as err:  # zarr/xarray raise many types for a bad store
-        msg = " ".join(str(err).split())[:160] or type(err).__name__
+        msg = one_line(err, 160)
         raise ValueError(f"{path} is not a readable Zarr cube ({msg})") from None
     with ds:
         if "reflectance" not in ds:

@@ -46,6 +46,8 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
+from ._storage import one_line
+
 __all__ = [
     "PIXELS",
     "pixel_mesh",
@@ -131,7 +133,7 @@ def initialize_distributed(
             initialization_timeout=int(timeout_s) + 30,  # the watchdog fires first
         )
     except (RuntimeError, ValueError) as err:  # XlaRuntimeError is a RuntimeError
-        msg = " ".join(str(err).split())[:160]
+        msg = one_line(err, 160)
         raise ConnectionError(
             f"could not join the multi-host run at {where} ({msg}); {hint}"
         ) from None

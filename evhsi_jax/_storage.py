@@ -69,7 +69,7 @@ def read_npz(path: str | os.PathLike, what: str = "file") -> dict[str, np.ndarra
             data = np.load(fh, allow_pickle=False)
         except errors as err:
             raise ValueError(
-                f"{path} is not a readable .npz {what} ({_why(err)})"
+                f"{path} is not a readable .npz {what} ({one_line(err)})"
             ) from None
         if not isinstance(data, np.lib.npyio.NpzFile):
             raise ValueError(
@@ -81,7 +81,7 @@ def read_npz(path: str | os.PathLike, what: str = "file") -> dict[str, np.ndarra
         except errors as err:
             raise ValueError(
                 f"{path} is not a readable .npz {what}: a member is damaged or holds "
-                f"objects ({_why(err)})"
+                f"objects ({one_line(err)})"
             ) from None
 
 
@@ -97,8 +97,10 @@ def scalar_int(arrays: Mapping[str, np.ndarray], key: str, path) -> int:
     return int(value.reshape(()))
 
 
-def _why(err: BaseException) -> str:
-    return " ".join(str(err).split())[:120] or type(err).__name__
+def one_line(err: BaseException, limit: int = 120) -> str:
+    """An exception's message on one line, at most `limit` characters (its type's
+    name when it has none): what error messages quote of a library's exception."""
+    return " ".join(str(err).split())[:limit] or type(err).__name__
 
 
 def same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
@@ -146,7 +148,7 @@ def check_outputs(
             os.unlink(probe)
         except OSError as err:
             raise ValueError(
-                f"{name}: cannot write into {folder} ({_why(err)})"
+                f"{name}: cannot write into {folder} ({one_line(err)})"
             ) from None
         if out.is_dir() and out.suffix.lower() != ".zarr":  # a Zarr store is a folder
             raise ValueError(f"{name} {out} is a folder, not a file")

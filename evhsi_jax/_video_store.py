@@ -32,6 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ._storage import one_line
+
 __all__ = ["VideoStore", "is_video_store", "holds_video"]
 
 _PER_PIXEL = (  # name, dtype, trailing axes
@@ -87,7 +89,7 @@ class VideoStore:
             # The arrays themselves, not the consolidated summary (which lags them).
             self.group = zarr.open_group(str(self.path), mode=mode, use_consolidated=False)
         except Exception as err:  # zarr raises many types for a foreign folder
-            msg = " ".join(str(err).split())[:160] or type(err).__name__
+            msg = one_line(err, 160)
             raise ValueError(f"{self.path} is not a readable Zarr store ({msg})") from None
         self._lock_fd = None
 
