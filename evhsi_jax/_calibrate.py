@@ -305,6 +305,18 @@ def chart_residuals(rig: Rig, data, traces=None, *, per_pixel: bool = False):
     return jnp.where(pos | neg, d * u - pol, 0.0)
 
 
+def _with_column_offsets(rig: Rig, width: int) -> Rig:
+    """`rig` with its column offsets explicit (one per column)."""
+    if rig.column_offsets_us is not None:
+        return rig
+    return eqx.tree_at(
+        lambda r: r.column_offsets_us,
+        rig,
+        rig.column_offsets(width),
+        is_leaf=lambda v: v is None,
+    )
+
+
 def _width(rig, col):
     if rig.column_offsets_us is None:
         raise ValueError("calibration needs explicit column offsets (one per column)")
@@ -439,6 +451,7 @@ class CalibrationResult:
     events_used: int
     pixels_used: int
     seconds: float
+    psf_sigma_px: float | None = None  # the chart's blur chosen for the maps
 
     @property
     def calibration(self) -> Calibration:
@@ -461,6 +474,7 @@ class CalibrationResult:
                 "threshold_noise": e.threshold_noise,
                 "timestamp_jitter_us": e.timestamp_jitter_us,
                 "noise_rate_hz": self.rig.noise_rate_hz,
+                "psf_sigma_px": self.psf_sigma_px,
                 "seconds": self.seconds,
                 "not_measured": "photoreceptor_hz (kept from the initial rig)",
             },
@@ -662,16 +676,7 @@ def _calibrate64(
 
     t0 = time.perf_counter()
     w = events.width
-    rig = (
-        init
-        if init.column_offsets_us is not None
-        else eqx.tree_at(
-            lambda r: r.column_offsets_us,
-            init,
-            init.column_offsets(w),
-            is_leaf=lambda v: v is None,
-        )
-    )
+    rig = _with_column_offsets(init, w)
     if rig.column_offsets_us.shape[0] != w:
         raise ValueError(
             f"initial rig has {rig.column_offsets_us.shape[0]} column offsets, the "
@@ -833,10 +838,10 @@ def _calibrate64(
     fitted = _apply(params, rig, basis)
     if not fit_baseline:
         fitted = eqx.tree_at(lambda q: q.baseline_rel, fitted, rig.baseline_rel)
-    on_map = off_map = None
+    on_map = off_map = psf = None
     if per_pixel:
-        on_map, off_map = threshold_maps_from_chart(
-            events, chart, fitted, t_start_us=t_start_us
+        on_map, off_map, psf = threshold_maps_from_chart(
+            events, chart, fitted, t_start_us=t_start_us, return_psf=True
         )
         # The population thresholds: mean over the chart pixels that had such events.
         c_on, c_off = _closed_form_thresholds(_log_steps(fitted, data), data)
@@ -878,6 +883,7 @@ def _calibrate64(
         events_used=data.events,
         pixels_used=int(data.mask.any(axis=1).sum()),
         seconds=time.perf_counter() - t0,
+        psf_sigma_px=psf,
     )
 
 
@@ -915,6 +921,17 @@ def _log_steps(rig: Rig, data: ChartData, block: int = 4096):
     return np.concatenate(out)
 
 
+PSF_GRID_PX = (0.0, 0.25, 0.4, 0.5, 0.6, 0.75, 1.0, 1.5)  # blur σ searched, pixels
+
+
+def _rms_own_thresholds(steps, data: ChartData, c_on, c_off) -> np.ndarray:
+    """Per-pixel RMS residual (threshold units) with the pixel's own thresholds."""
+    c_px = np.where(data.polarity > 0, c_on[:, None], c_off[:, None])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = np.where(data.mask, steps / c_px - data.polarity, np.nan)
+        return np.sqrt(np.nanmean(r**2, axis=1))
+
+
 def _closed_form_thresholds(steps: np.ndarray, data: ChartData):
     """Per-pixel C_on, C_off from model log steps: the least-squares values of the
     threshold-unit residuals, $C = \\sum d_k^2 / \\sum σ_k d_k$ (NaN where a pixel has
@@ -930,32 +947,51 @@ def _closed_form_thresholds(steps: np.ndarray, data: ChartData):
 
 
 def threshold_maps_from_chart(
-    events: EventStream, chart: Scene, rig: Rig, *, t_start_us: int | None = None
+    events: EventStream,
+    chart: Scene,
+    rig: Rig,
+    *,
+    t_start_us: int | None = None,
+    psf_sigmas_px=PSF_GRID_PX,
+    return_psf: bool = False,
 ):
     """Per-pixel ON/OFF thresholds with the global parameters fixed (closed form).
 
     Each event's model log step $d_k = \\log I(τ_k) - \\log I(ρ_k)$ is computed from the
     known reflectance; a pixel's $C_{on}$ is the mean of $d_k$ over its ON events and
     $C_{off}$ the mean of $-d_k$ over its OFF events (the least-squares solution of its
-    residuals). Pixels without ON (OFF) events get the rig's global value, and so do
-    pixels whose RMS residual with their own thresholds is an outlier (> 2× the median
-    and > median + 8 robust σ): their events do not follow the chart's model.
+    residuals).
 
-    **Returns:** `(threshold_on, threshold_off)` maps, each `(H, W)`.
+    **The optics' blur.** On a patch border the lens mixes two grays; a pixel there
+    sees a level the chart's labels do not give, and its closed-form thresholds absorb
+    the difference (per-crossing threshold noise hides the misfit in its own
+    residual). The chart is therefore seen through a Gaussian PSF whose σ is chosen
+    from `psf_sigmas_px` by the total squared residual of all pixels with their own
+    thresholds: pooled over every border pixel, the blur is well determined although
+    no single pixel shows it. `psf_sigmas_px=(0.0,)` turns this off.
+
+    A pixel whose RMS residual with its own thresholds is still an outlier (> 2× the
+    median and > median + 8 robust σ) does not follow the chart's model (dirt, a
+    defect) and gets the rig's global pair, as do pixels without ON (OFF) events.
+
+    **Returns:** `(threshold_on, threshold_off)` maps, each `(H, W)`; with
+    `return_psf` also the chosen σ (pixels).
     """
     h, w = events.height, events.width
+    rig = _with_column_offsets(rig, w)
     on = np.full(h * w, float(rig.threshold_on))
     off = np.full(h * w, float(rig.threshold_off))
     data = chart_data(events, chart, rig, t_start_us=t_start_us, rows_per_label=None)
-    steps = _log_steps(rig, data)
-    c_on, c_off = _closed_form_thresholds(steps, data)
-    # A pixel whose events its own thresholds cannot explain does not see the chart
-    # the model assumes (a patch border blurred by the optics, dirt, a defect): its
-    # thresholds would be biased, so it keeps the global pair.
-    c_px = np.where(data.polarity > 0, c_on[:, None], c_off[:, None])
-    with np.errstate(invalid="ignore", divide="ignore"):
-        r = np.where(data.mask, steps / c_px - data.polarity, np.nan)
-        rms_px = np.sqrt(np.nanmean(r**2, axis=1))
+    best = None
+    for sigma in psf_sigmas_px:
+        d = _seen_through(data, chart.blurred(float(sigma)), rig)
+        steps = _log_steps(rig, d)
+        c_on, c_off = _closed_form_thresholds(steps, d)
+        rms_px = _rms_own_thresholds(steps, d, c_on, c_off)
+        ssr = float(np.nansum(rms_px**2 * d.mask.sum(1)))
+        if best is None or ssr < best[0]:
+            best = (ssr, float(sigma), c_on, c_off, rms_px)
+    _, psf, c_on, c_off, rms_px = best
     med = np.nanmedian(rms_px)
     mad = np.nanmedian(np.abs(rms_px - med))
     misfit = rms_px > max(2.0 * med, med + 8.0 * 1.4826 * mad, 0.02)
@@ -963,7 +999,18 @@ def threshold_maps_from_chart(
     good_off = np.isfinite(c_off) & ~misfit
     on[data.pixel[good_on]] = c_on[good_on]
     off[data.pixel[good_off]] = c_off[good_off]
-    return on.reshape(h, w), off.reshape(h, w)
+    maps = on.reshape(h, w), off.reshape(h, w)
+    return (*maps, psf) if return_psf else maps
+
+
+def _seen_through(data: ChartData, chart: Scene, rig: Rig) -> ChartData:
+    """`data` with each pixel's reflectance taken from `chart` (same geometry)."""
+    labels = chart.labels.reshape(-1)[data.pixel]
+    used, spectrum = np.unique(labels, return_inverse=True)
+    fine = chart.palette_on(rig.grid.fine_edges_nm)[used]
+    # Pad to a power of two so that the blurs searched share compiled shapes.
+    fine = np.pad(fine, ((0, (1 << max(used.size - 1, 1).bit_length()) - used.size), (0, 0)))
+    return dataclasses.replace(data, spectra=fine, spectrum=spectrum.reshape(-1))
 
 
 def save_calibration(path, result: CalibrationResult, *, comment: str = "") -> dict:

@@ -290,7 +290,7 @@ def simulate(
             "yet: simulate on one device"
         )
     if fx.psf_sigma_px > 0:
-        scenes = [_blurred(sc, fx.psf_sigma_px) for sc in scenes]
+        scenes = [sc.blurred(fx.psf_sigma_px) for sc in scenes]
     speed_factor = np.ones(sweeps)
     if fx.sweep_rate_jitter > 0:
         speed_factor = 1.0 + fx.sweep_rate_jitter * np.asarray(
@@ -493,20 +493,3 @@ def _hot_pixel_events(fx, h: int, w: int, duration_us: float, *, key):
     p = (rank % 2).astype(np.uint8)
     y, x = np.divmod(pix, w)
     return hot.reshape(h, w), (x.astype(np.uint16), y.astype(np.uint16), p, t)
-
-
-def _blurred(scene: Scene, sigma_px: float) -> Scene:
-    """The scene seen through a Gaussian point-spread function of σ pixels (applied to
-    reflectance: exact where neighbouring columns see the same band, i.e. the blur is
-    much narrower than the band's width on the sensor — true for the default rig,
-    whose band spans hundreds of columns)."""
-    from scipy.ndimage import gaussian_filter
-
-    cube = scene.palette[scene.labels]  # (H, W, L)
-    blurred = gaussian_filter(cube, sigma=(sigma_px, sigma_px, 0), mode="nearest")
-    h, w, n = blurred.shape
-    return Scene(
-        palette=np.clip(blurred.reshape(h * w, n), 0.0, 1.0),
-        wavelengths_nm=scene.wavelengths_nm,
-        labels=np.arange(h * w).reshape(h, w),
-    )

@@ -36,3 +36,46 @@ def test_calibration_fits_curvature_and_a_known_lowpass():
     assert abs(float(res.rig.sweep_curvature_nm) - 3.0) < 0.5
     assert res.rms_residual < 0.01  # the low-passed chart is explained exactly
     assert res.rig.effects.threshold_noise < 0.002
+
+
+def test_calibration_measures_the_optics_blur_and_keeps_border_thresholds():
+    """A lens blur mixes neighbouring grays on the chart's patch borders; with
+    per-crossing noise no single pixel shows it, but pooled over all border pixels the
+    PSF is found, and the border pixels' thresholds are then unbiased (without the
+    search they absorb the level the chart's labels get wrong)."""
+    chart = ev.load_scene("gray-chart", (24, 32))
+    true = ev.Rig(threshold_noise=0.01, psf_sigma_px=0.5)
+    events, info = ev.simulate(chart, true, sweeps=4, key=jr.key(8), return_info=True)
+    rig = true.replace_static(effects=ev.Rig().effects)
+    on, off, psf = ev.threshold_maps_from_chart(events, chart, rig, return_psf=True)
+    assert psf == 0.5
+    on0, off0 = ev.threshold_maps_from_chart(events, chart, rig, psf_sigmas_px=(0.0,))
+    labels = chart.labels
+    border = np.zeros(labels.shape, bool)
+    border[1:] |= labels[1:] != labels[:-1]
+    border[:-1] |= labels[1:] != labels[:-1]
+    err = np.abs(on - info.threshold_on)[border].mean()
+    err0 = np.abs(on0 - info.threshold_on)[border].mean()
+    assert err < 0.6 * err0
+    # Interior pixels see (almost) no blur: the same thresholds either way (border
+    # pixels move by ~0.01).
+    np.testing.assert_allclose(on[~border], on0[~border], atol=2e-4)
+    # An ideal (sharp) capture: no blur is found.
+    sharp = ev.simulate(chart, ev.Rig(threshold_noise=0.01), sweeps=4, key=jr.key(8))
+    assert ev.threshold_maps_from_chart(sharp, chart, rig, return_psf=True)[2] == 0.0
+
+
+def test_blurred_scene_matches_a_direct_filter():
+    """`Scene.blurred`: the label-weight path equals blurring the cube itself, and a
+    blur keeps a uniform scene uniform."""
+    from scipy.ndimage import gaussian_filter
+
+    scene = ev.load_scene("colorchecker", (12, 18))
+    b = scene.blurred(0.7)
+    direct = gaussian_filter(
+        scene.palette[scene.labels], (0.7, 0.7, 0), mode="nearest"
+    ).clip(0, 1)
+    np.testing.assert_allclose(b.palette[b.labels], direct, atol=1e-9)
+    chart = ev.load_scene("gray-chart", (24, 32)).blurred(0.5)
+    assert chart.palette.shape[0] < 24  # mixtures shared, not one entry per pixel
+    assert scene.blurred(0.0) is scene
