@@ -55,9 +55,7 @@ import optimistix as optx
 from ._calibration import Calibration
 from ._events import EventStream
 from ._illumination import BandTable, band_overlap, band_table, lookup
-from ._reconstruct._pipeline import noise_model, screen_events
-from ._reconstruct._pixels import group_pixels
-from ._reconstruct._problem import lit_interval_us
+from ._reconstruct import group_pixels, lit_interval_us, noise_model, screen_events
 from ._rig import Rig
 from ._scenes import Scene
 from ._sensor import photoreceptor_lowpass

@@ -1,7 +1,10 @@
 """Scale-out: the pixel axis across devices (`jax.sharding`) and hosts (`jax.distributed`).
 
 Both heavy loops are embarrassingly parallel over pixels: the reconstruction solves one
-QP per pixel, the simulator scans each column chunk independently. A one-axis
+QP per pixel, the simulator scans each column chunk independently. This module is the
+plumbing only (mesh, host↔global arrays, processes); the sharded kernels live with the
+stage that owns them (`_simulate.scan_chunks_sharded`,
+`_reconstruct._pipeline.solve_chunk_sharded`), so imports flow one way. A one-axis
 :class:`jax.sharding.Mesh` named `"pixels"` spans the devices; each compiled chunk is
 cut into equal per-device blocks with :func:`jax.shard_map`, and every device runs the
 *same* per-pixel kernel on its block as the single-device code does on a whole chunk —
@@ -31,8 +34,6 @@ On SLURM / Open MPI / TPU pods `jax.distributed.initialize()` finds these by its
 
 from __future__ import annotations
 
-import functools
-import math
 import os
 import socket
 import sys
@@ -41,7 +42,6 @@ import time
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
@@ -55,9 +55,10 @@ __all__ = [
     "is_main_process",
     "to_global",
     "to_host",
-    "solve_chunk_sharded",
-    "scan_chunks_sharded",
+    "replicated",
+    "mesh_size",
     "sub_batch_for",
+    "chunk_groups",
 ]
 
 PIXELS = "pixels"
@@ -188,7 +189,8 @@ def pixel_mesh(devices=None) -> Mesh:
     return Mesh(np.asarray(list(devices)), (PIXELS,))
 
 
-def _n(mesh: Mesh | None) -> int:
+def mesh_size(mesh: Mesh | None) -> int:
+    """Devices in `mesh` (1 without one)."""
     return 1 if mesh is None else int(mesh.devices.size)
 
 
@@ -211,32 +213,13 @@ def to_host(x) -> np.ndarray:
     return np.asarray(multihost_utils.process_allgather(x, tiled=True))
 
 
-def _replicated(mesh, tree):
+def replicated(mesh, tree):
     """Array leaves of a parameter pytree (rig, tables) replicated on every device."""
     if jax.process_count() == 1:
         return tree
     return jax.tree.map(
         lambda a: to_global(mesh, a, sharded=False) if eqx.is_array(a) else a, tree
     )
-
-
-# --- reconstruction ------------------------------------------------------------------
-@functools.lru_cache(maxsize=64)
-def _solver_fn(mesh, cfg, spec, sub, sweeps, with_noise):
-    from ._reconstruct._pipeline import _solve_chunk
-
-    def local(rig, table, noise, *rows):
-        noise = noise if with_noise else None
-        return _solve_chunk(rig, table, cfg, spec, sub, *rows, sweeps, noise)
-
-    mapped = jax.shard_map(
-        local,
-        mesh=mesh,
-        in_specs=(P(), P(), P()) + (P(PIXELS),) * 7,
-        out_specs=(P(PIXELS), P(PIXELS)),
-        check_vma=False,
-    )
-    return eqx.filter_jit(mapped)
 
 
 def sub_batch_for(mesh: Mesh, sub: int) -> int:
@@ -255,142 +238,12 @@ def sub_batch_for(mesh: Mesh, sub: int) -> int:
     return int(sub)
 
 
-def solve_chunk_sharded(
-    mesh: Mesh,
-    rig,
-    table,
-    cfg,
-    spec,
-    sub: int,
-    t_us,
-    polarity,
-    mask,
-    offsets,
-    thr_on,
-    thr_off,
-    phase,
-    sweeps: int,
-    noise=None,
-):
-    """The reconstruction's chunk kernel with its pixels split over `mesh`.
-
-    Same arguments and results as `_reconstruct._pipeline._solve_chunk` (host arrays
-    in, NumPy `(x, kkt)` out); the chunk's pixel count must be a multiple of
-    `mesh.size * sub`.
-    """
-    n = np.shape(t_us)[0]
-    if n % (_n(mesh) * sub):
-        raise ValueError(f"chunk of {n} pixels does not split into {_n(mesh)}×{sub}")
-    rows = [
-        to_global(mesh, np.asarray(a))
-        for a in (t_us, polarity, mask, offsets, thr_on, thr_off, phase)
-    ]
-    fn = _solver_fn(mesh, cfg, spec, int(sub), int(sweeps), noise is not None)
-    noise_arr = jnp.zeros(3, table.values.dtype) if noise is None else noise
-    x, kkt = fn(
-        _replicated(mesh, rig),
-        _replicated(mesh, table),
-        _replicated(mesh, noise_arr),
-        *rows,
-    )
-    return to_host(x), to_host(kkt)
-
-
 def chunk_groups(n_chunks: int, mesh: Mesh | None) -> list[list[int]]:
     """Chunk indices in groups of `mesh.size` (the last padded by repeating its final
     index; the caller discards repeats)."""
-    d = _n(mesh)
+    d = mesh_size(mesh)
     groups = []
     for g0 in range(0, n_chunks, d):
         g = list(range(g0, min(g0 + d, n_chunks)))
         groups.append(g + [g[-1]] * (d - len(g)))
     return groups
-
-
-# --- simulation ----------------------------------------------------------------------
-@functools.lru_cache(maxsize=64)
-def _log_intensity_fn(mesh, palette: bool, lo_nm: float):
-    from ._simulate import _log_intensity
-
-    def local(rig, tab, spectra, t_local, offsets, labels):
-        spec = spectra if palette else spectra[0]
-        log_i = _log_intensity(rig, tab, lo_nm, t_local[0], offsets[0], spec, labels[0])
-        return log_i[None]
-
-    rows = P(PIXELS)
-    mapped = jax.shard_map(
-        local,
-        mesh=mesh,
-        in_specs=(P(), P(), P() if palette else rows, rows, rows, rows),
-        out_specs=rows,
-        check_vma=False,
-    )
-    return eqx.filter_jit(mapped)
-
-
-@functools.lru_cache(maxsize=64)
-def _scan_fn(mesh, fresh: bool):
-    from ._simulate import _scan
-
-    def local(rig, log_i, t_local, thr_on, thr_off, state):
-        state = None if fresh else jax.tree.map(lambda a: a[0], state)
-        out, state = _scan(rig, log_i[0], t_local[0], thr_on[0], thr_off[0], state)
-        return jax.tree.map(lambda a: a[None], (*out, state))
-
-    rows = P(PIXELS)
-    mapped = jax.shard_map(
-        local,
-        mesh=mesh,
-        in_specs=(P(),) + (rows,) * 5,
-        out_specs=rows,
-        check_vma=False,
-    )
-    return eqx.filter_jit(mapped)
-
-
-def scan_chunks_sharded(
-    mesh: Mesh,
-    rig,
-    table_values,
-    lo_nm: float,
-    spectra,
-    t_local,
-    offsets,
-    labels,
-    thr_on,
-    thr_off,
-    state,
-):
-    """The simulator's chunk kernel on one group of `mesh.size` column chunks at once.
-
-    Every argument after `spectra` has a leading axis of one entry per chunk
-    (`spectra` too when it holds per-pixel spectra, `(D, c, h, f)`; a palette `(K, f)`
-    is shared); `state` is `None` on the first sweep, else the stacked state the
-    previous call returned. Two compiled stages (intensity, then the scan), as in the
-    single-device palette path. Returns `(fired, time_us, is_on, state)`, stacked
-    `(D, …)`: NumPy, the state as device arrays.
-    """
-    palette = np.ndim(spectra) == 2
-    fresh = state is None
-    g = functools.partial(to_global, mesh)
-    rig_r = _replicated(mesh, rig)
-    log_i = _log_intensity_fn(mesh, palette, float(lo_nm))(
-        rig_r,
-        _replicated(mesh, table_values),
-        to_global(mesh, spectra, sharded=False) if palette else g(spectra),
-        g(t_local),
-        g(offsets),
-        g(labels),
-    )
-    if fresh:  # a placeholder with the right leading axis; not read
-        state = (g(np.zeros((_n(mesh), 1), np.float32)),) * 3
-    fired, tc, up, new_state = _scan_fn(mesh, fresh)(
-        rig_r, log_i, g(t_local), g(thr_on), g(thr_off), state
-    )
-    return to_host(fired), to_host(tc), to_host(up), new_state
-
-
-def pad_to_devices(n: int, mesh: Mesh | None, multiple: int = 1) -> int:
-    """`n` rounded up to a multiple of `mesh.size * multiple`."""
-    q = _n(mesh) * multiple
-    return q * math.ceil(n / q)

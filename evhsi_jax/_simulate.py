@@ -11,13 +11,17 @@ K distinct spectra costs K traces per column, not H.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections.abc import Sequence
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
+from jax.sharding import Mesh
+from jax.sharding import PartitionSpec as P
 from jaxtyping import PRNGKeyArray
 from tqdm.auto import tqdm
 
@@ -383,7 +387,7 @@ def simulate(
             else:
                 t_loc, offs, spectra, lab, con, coff = (np.stack(a) for a in zip(*ins))
                 spectra = pal_j if use_palette else spectra
-                *out, group_states[gi] = _shard.scan_chunks_sharded(
+                *out, group_states[gi] = scan_chunks_sharded(
                     mesh, srig, tab_vals, fine.lo_nm, spectra, t_loc, offs, lab, con,
                     coff, state,
                 )  # fmt: skip
@@ -493,3 +497,87 @@ def _hot_pixel_events(fx, h: int, w: int, duration_us: float, *, key):
     p = (rank % 2).astype(np.uint8)
     y, x = np.divmod(pix, w)
     return hot.reshape(h, w), (x.astype(np.uint16), y.astype(np.uint16), p, t)
+
+
+# --- the chunk kernel on a device mesh ----------------------------------------------
+@functools.lru_cache(maxsize=64)
+def _log_intensity_fn(mesh, palette: bool, lo_nm: float):
+    def local(rig, tab, spectra, t_local, offsets, labels):
+        spec = spectra if palette else spectra[0]
+        log_i = _log_intensity(rig, tab, lo_nm, t_local[0], offsets[0], spec, labels[0])
+        return log_i[None]
+
+    rows = P(_shard.PIXELS)
+    mapped = jax.shard_map(
+        local,
+        mesh=mesh,
+        in_specs=(P(), P(), P() if palette else rows, rows, rows, rows),
+        out_specs=rows,
+        check_vma=False,
+    )
+    return eqx.filter_jit(mapped)
+
+
+@functools.lru_cache(maxsize=64)
+def _scan_fn(mesh, fresh: bool):
+    def local(rig, log_i, t_local, thr_on, thr_off, state):
+        state = None if fresh else jax.tree.map(lambda a: a[0], state)
+        out, state = _scan(rig, log_i[0], t_local[0], thr_on[0], thr_off[0], state)
+        return jax.tree.map(lambda a: a[None], (*out, state))
+
+    rows = P(_shard.PIXELS)
+    mapped = jax.shard_map(
+        local,
+        mesh=mesh,
+        in_specs=(P(),) + (rows,) * 5,
+        out_specs=rows,
+        check_vma=False,
+    )
+    return eqx.filter_jit(mapped)
+
+
+def scan_chunks_sharded(
+    mesh: Mesh,
+    rig,
+    table_values,
+    lo_nm: float,
+    spectra,
+    t_local,
+    offsets,
+    labels,
+    thr_on,
+    thr_off,
+    state,
+):
+    """The simulator's chunk kernel on one group of `mesh.size` column chunks at once.
+
+    Every argument after `spectra` has a leading axis of one entry per chunk
+    (`spectra` too when it holds per-pixel spectra, `(D, c, h, f)`; a palette `(K, f)`
+    is shared); `state` is `None` on the first sweep, else the stacked state the
+    previous call returned. Two compiled stages (intensity, then the scan), as in the
+    single-device palette path. Returns `(fired, time_us, is_on, state)`, stacked
+    `(D, …)`: NumPy, the state as device arrays.
+    """
+    palette = np.ndim(spectra) == 2
+    fresh = state is None
+    g = functools.partial(_shard.to_global, mesh)
+    rig_r = _shard.replicated(mesh, rig)
+    log_i = _log_intensity_fn(mesh, palette, float(lo_nm))(
+        rig_r,
+        _shard.replicated(mesh, table_values),
+        _shard.to_global(mesh, spectra, sharded=False) if palette else g(spectra),
+        g(t_local),
+        g(offsets),
+        g(labels),
+    )
+    if fresh:  # a placeholder with the right leading axis; not read
+        state = (g(np.zeros((_shard.mesh_size(mesh), 1), np.float32)),) * 3
+    fired, tc, up, new_state = _scan_fn(mesh, fresh)(
+        rig_r, log_i, g(t_local), g(thr_on), g(thr_off), state
+    )
+    return (
+        _shard.to_host(fired),
+        _shard.to_host(tc),
+        _shard.to_host(up),
+        new_state,
+    )

@@ -67,10 +67,13 @@ from tqdm.auto import tqdm
 from ._calibration import Calibration
 from ._cubefile import load_cube, save_cube
 from ._events import EventStream, check_roi
-from ._io import EventReader
-from ._io._reader import DEFAULT_CHUNK_BYTES
-from ._reconstruct import ProblemConfig, reconstruct, solver_spec
-from ._reconstruct._pixels import TIMESTAMP_CENTRE_US
+from ._io import DEFAULT_CHUNK_BYTES, EventReader
+from ._reconstruct import (
+    TIMESTAMP_CENTRE_US,
+    ProblemConfig,
+    reconstruct,
+    solver_spec,
+)
 from ._render import cube_to_srgb
 from ._rig import Rig
 from ._storage import TEMP_SUFFIX, atomic_write, read_npz

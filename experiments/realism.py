@@ -18,8 +18,9 @@ scene recorded for ~0.13 s), and reconstruct it
 The held-out scene is the ColorChecker (measured reflectances); the reconstruction's
 weights were chosen on the `tcs` training scene. Metrics are against the scene's
 reflectance and, in the last column, against the scene seen through the optics (the
-true PSF applied: what reaches the pixels; a per-pixel method cannot undo the blur). Each effect alone at three
-magnitudes, the issue's "moderate mix" and the `realistic` preset.
+true PSF applied: what reaches the pixels; a per-pixel method cannot undo the blur).
+Each effect alone at three magnitudes, the issue's "moderate mix" and the `realistic`
+preset.
 
 Run: `.venv/bin/python experiments/realism.py [--size 32x48] [--quick]`
 → experiments/results/realism.json and realism.png. Machine: the 2-core CI VM.
@@ -140,6 +141,7 @@ def main(argv=None):
         "--only", help="comma-separated effect names to run (e.g. 'realistic preset')"
     )
     args = ap.parse_args(argv)
+    ev.enable_compilation_cache()  # each sensor's programs; the caches are cleared below
     if args.table:
         print(markdown(json.loads(Path(args.table).read_text())["rows"]))
         return

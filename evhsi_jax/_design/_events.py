@@ -50,7 +50,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
 from .._illumination import BandTable, band_table, lookup
-from .._reconstruct._problem import ProblemConfig, pixel_system
+from .._reconstruct import ProblemConfig, pixel_system
 from .._rig import Rig
 from .._sensor import exact_events_scan
 

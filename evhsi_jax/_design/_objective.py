@@ -34,8 +34,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from .._illumination import band_table, lookup
-from .._reconstruct._implicit import box_qp
-from .._reconstruct._problem import ProblemConfig
+from .._reconstruct import ProblemConfig, box_qp
 from .._rig import Rig
 from .._scenes import load_scene
 from .._sensor import soft_event_counts

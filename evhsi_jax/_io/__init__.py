@@ -20,6 +20,7 @@ from ._files import replay_raw as replay_raw
 from ._files import write_events as write_events
 from ._header import RawHeader as RawHeader
 from ._header import parse_header as parse_header
+from ._reader import DEFAULT_CHUNK_BYTES as DEFAULT_CHUNK_BYTES
 from ._reader import EventReader as EventReader
 from ._reader import iter_events as iter_events
 from ._reader import open_events as open_events

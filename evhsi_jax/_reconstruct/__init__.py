@@ -11,17 +11,21 @@ from ._pipeline import (
 from ._pipeline import (
     SolverSpec as SolverSpec,
 )
+from ._pipeline import noise_model as noise_model
 from ._pipeline import (
     reconstruct as reconstruct,
 )
+from ._pipeline import screen_events as screen_events
 from ._pipeline import (
     solver_spec as solver_spec,
 )
+from ._pixels import TIMESTAMP_CENTRE_US as TIMESTAMP_CENTRE_US
 from ._pixels import PixelBatch as PixelBatch
 from ._pixels import group_pixels as group_pixels
 from ._problem import (
     ProblemConfig as ProblemConfig,
 )
+from ._problem import lit_interval_us as lit_interval_us
 from ._problem import (
     pixel_system as pixel_system,
 )

@@ -16,8 +16,11 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import Mesh
+from jax.sharding import PartitionSpec as P
 from tqdm.auto import tqdm
 
+from .. import _shard
 from .._calibration import Calibration
 from .._events import EventStream
 from .._illumination import band_table
@@ -433,10 +436,8 @@ def reconstruct(
     sub = max(1, min(sub_batch, chunk_pixels))
     solve, n_dev = _solve_chunk, 1
     if mesh is not None:
-        from .._shard import solve_chunk_sharded, sub_batch_for
-
         solve, n_dev = functools.partial(solve_chunk_sharded, mesh), mesh.devices.size
-        sub = sub_batch_for(mesh, sub)
+        sub = _shard.sub_batch_for(mesh, sub)
     chunk = sub * math.ceil(chunk_pixels / sub)
     screened, hot, n_dropped = screen_events(
         events, rig, t_start_us, noise, sweeps, cal.hot_pixels
@@ -568,7 +569,11 @@ def screen_events(
     local = np.mod(events.t_us.astype(np.float64) - t_start_us, period)
     lo, hi = u_arr[x] - margin, u_lv[x] + margin
     # The interval may wrap around the period (local times are taken modulo P).
-    inside = ((local >= lo) & (local <= hi)) | ((local + period >= lo) & (local + period <= hi)) | ((local - period >= lo) & (local - period <= hi))  # noqa: E501
+    inside = (
+        ((local >= lo) & (local <= hi))
+        | ((local + period >= lo) & (local + period <= hi))
+        | ((local - period >= lo) & (local - period <= hi))
+    )  # noqa: E501
     pix = events.y.astype(np.int64) * w + x
     outside = np.bincount(pix[~inside], minlength=h * w)
     hot |= (outside >= 2) & (outside >= 2 * sweeps)
@@ -615,3 +620,63 @@ def _check_map(a, h, w, name):
     if not np.all(np.isfinite(a)) or np.any(a <= 0):
         raise ValueError(f"{name} must be finite and > 0")
     return a.reshape(-1)
+
+
+# --- the chunk kernel on a device mesh ----------------------------------------------
+@functools.lru_cache(maxsize=64)
+def _solver_fn(mesh, cfg, spec, sub, sweeps, with_noise):
+    def local(rig, table, noise, *rows):
+        noise = noise if with_noise else None
+        return _solve_chunk(rig, table, cfg, spec, sub, *rows, sweeps, noise)
+
+    mapped = jax.shard_map(
+        local,
+        mesh=mesh,
+        in_specs=(P(), P(), P()) + (P(_shard.PIXELS),) * 7,
+        out_specs=(P(_shard.PIXELS), P(_shard.PIXELS)),
+        check_vma=False,
+    )
+    return eqx.filter_jit(mapped)
+
+
+def solve_chunk_sharded(
+    mesh: Mesh,
+    rig,
+    table,
+    cfg,
+    spec,
+    sub: int,
+    t_us,
+    polarity,
+    mask,
+    offsets,
+    thr_on,
+    thr_off,
+    phase,
+    sweeps: int,
+    noise=None,
+):
+    """The reconstruction's chunk kernel with its pixels split over `mesh`.
+
+    Same arguments and results as :func:`_solve_chunk` (host arrays
+    in, NumPy `(x, kkt)` out); the chunk's pixel count must be a multiple of
+    `mesh.size * sub`.
+    """
+    n = np.shape(t_us)[0]
+    if n % (_shard.mesh_size(mesh) * sub):
+        raise ValueError(
+            f"chunk of {n} pixels does not split into {_shard.mesh_size(mesh)}×{sub}"
+        )
+    rows = [
+        _shard.to_global(mesh, np.asarray(a))
+        for a in (t_us, polarity, mask, offsets, thr_on, thr_off, phase)
+    ]
+    fn = _solver_fn(mesh, cfg, spec, int(sub), int(sweeps), noise is not None)
+    noise_arr = jnp.zeros(3, table.values.dtype) if noise is None else noise
+    x, kkt = fn(
+        _shard.replicated(mesh, rig),
+        _shard.replicated(mesh, table),
+        _shard.replicated(mesh, noise_arr),
+        *rows,
+    )
+    return _shard.to_host(x), _shard.to_host(kkt)
