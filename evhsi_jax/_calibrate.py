@@ -227,7 +227,7 @@ def chart_log_steps(rig: Rig, data, traces=None):
         raise ValueError("pass the spectral traces with device arrays")
     t, _, m, col, s_idx = data
     offsets = rig.column_offsets(_width(rig, col))[col][:, None]
-    c1 = rig.baseline_rel + rig.log_eps
+    c1 = rig.baseline_level
     # References: the recording start for the first event, then τ_{k-1} + η.
     t_ref = jnp.concatenate(
         [jnp.zeros_like(t[:, :1]), t[:, :-1] + rig.refractory_us], axis=1
@@ -259,7 +259,7 @@ def _lowpassed_traces(rig: Rig, traces: BandTable, cutoff_hz: float) -> BandTabl
     traces: time and λc are proportional along the sweep (one table step is
     `step / (βω)` µs), so the filter runs along the table. Exact for the chart (its
     spectra are known); differentiable in the rig."""
-    speed = rig.beta_nm_per_rad * rig.omega_rad_per_us
+    speed = rig.band_speed_nm_per_us
     inten = jnp.maximum(traces.values, 0.0) + rig.baseline_rel
     filt = photoreceptor_lowpass(
         jnp.log(inten + rig.log_eps),
@@ -307,12 +307,7 @@ def _with_column_offsets(rig: Rig, width: int) -> Rig:
     """`rig` with its column offsets explicit (one per column)."""
     if rig.column_offsets_us is not None:
         return rig
-    return eqx.tree_at(
-        lambda r: r.column_offsets_us,
-        rig,
-        rig.column_offsets(width),
-        is_leaf=lambda v: v is None,
-    )
+    return rig.with_leaves(column_offsets_us=rig.column_offsets(width))
 
 
 def _width(rig, col):
@@ -566,7 +561,7 @@ def initial_guess(data: ChartData, rig: Rig) -> Rig:
     n_tab = traces.values.shape[0]
     lam = np.arange(traces.lo_nm, traces.lo_nm + traces.step_nm * (n_tab - 1), step_nm)
     a = np.asarray(lookup(traces, jnp.asarray(lam, traces.values.dtype)), np.float64)
-    c1 = float(rig.baseline_rel + rig.log_eps)
+    c1 = float(rig.baseline_level)
     uniq = np.arange(data.spectra.shape[0])
     inv = data.spectrum
     log_i = np.log(np.maximum(a, 0.0) + c1)  # (λ, S): λ plays the role of time
@@ -611,11 +606,9 @@ def initial_guess(data: ChartData, rig: Rig) -> Rig:
             tau[x] = np.median(tau_pix[s])
     good = np.isfinite(tau)
     tau = np.interp(np.arange(w), np.nonzero(good)[0], tau[good])
-    return eqx.tree_at(
-        lambda r: (r.beta_nm_per_rad, r.column_offsets_us),
-        rig,
-        (jnp.asarray(beta, dtype), jnp.asarray(tau, dtype)),
-        is_leaf=lambda v: v is None,
+    return rig.with_leaves(
+        beta_nm_per_rad=jnp.asarray(beta, dtype),
+        column_offsets_us=jnp.asarray(tau, dtype),
     )
 
 
@@ -835,7 +828,7 @@ def _calibrate64(
     data = dataclasses.replace(data, mask=data.mask & (np.asarray(keep) > 0)[:, None])
     fitted = _apply(params, rig, basis)
     if not fit_baseline:
-        fitted = eqx.tree_at(lambda q: q.baseline_rel, fitted, rig.baseline_rel)
+        fitted = fitted.with_leaves(baseline_rel=rig.baseline_rel)
     on_map = off_map = psf = None
     if per_pixel:
         on_map, off_map, psf = threshold_maps_from_chart(
@@ -843,13 +836,9 @@ def _calibrate64(
         )
         # The population thresholds: mean over the chart pixels that had such events.
         c_on, c_off = _closed_form_thresholds(_log_steps(fitted, data), data)
-        fitted = eqx.tree_at(
-            lambda r: (r.threshold_on, r.threshold_off),
-            fitted,
-            (
-                jnp.asarray(np.nanmean(c_on), dtype),
-                jnp.asarray(np.nanmean(c_off), dtype),
-            ),
+        fitted = fitted.with_leaves(
+            threshold_on=jnp.asarray(np.nanmean(c_on), dtype),
+            threshold_off=jnp.asarray(np.nanmean(c_off), dtype),
         )
     noise = measure_noise(fitted, data, res_final)
     bg_rate = _background_rate(captured, hot, fitted, t_start_us)

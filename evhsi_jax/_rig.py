@@ -432,6 +432,19 @@ class Rig(eqx.Module):
         """Pattern angular speed $ω = π f$, in rad/µs."""
         return jnp.pi * self.sweep_rate_hz * 1e-6
 
+    @property
+    def band_speed_nm_per_us(self) -> Float[Array, ""]:
+        """How fast the band centre moves across the spectrum, $βω$ in nm/µs (the
+        linear part; `sweep_curvature_nm` bends it)."""
+        return self.beta_nm_per_rad * self.omega_rad_per_us
+
+    @property
+    def baseline_level(self) -> Float[Array, ""]:
+        """$c' = c + ε$: the relative intensity a pixel sees with the band off it
+        (ambient baseline plus the log offset), the level every event chain starts
+        from."""
+        return self.baseline_rel + self.log_eps
+
     def column_offsets(self, width: int) -> Float[Array, " w"]:
         """τx for `width` columns in µs: the stored offsets or the default stagger."""
         if self.column_offsets_us is None:  # traceable in the sweep rate
@@ -449,7 +462,7 @@ class Rig(eqx.Module):
     def band_centre_nm(self, t_us, column_offset_us):
         """$λ_c = λ_0 + βω((t \\bmod P) + τ_x)$ for times `t_us` within/after a sweep."""
         local = jnp.mod(t_us, self.period_us)
-        lin = self.sweep_start_nm + self.beta_nm_per_rad * self.omega_rad_per_us * (
+        lin = self.sweep_start_nm + self.band_speed_nm_per_us * (
             local + column_offset_us
         )
         return lin + self.sweep_curvature_nm * self._curve(lin)

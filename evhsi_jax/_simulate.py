@@ -56,7 +56,7 @@ def time_oversampling(rig: Rig) -> int:
     """Sub-samples per rig sample: the step must not exceed η (one event per step) and
     the band FWHM must span at least 12 steps (so linear log-interpolation is fine)."""
     dt = float(rig.period_us) / rig.samples_per_sweep
-    speed = float(rig.beta_nm_per_rad * rig.omega_rad_per_us) * dt  # nm per sample
+    speed = float(rig.band_speed_nm_per_us) * dt  # nm per sample
     by_refr = math.ceil(dt / float(rig.refractory_us) - 1e-9)
     by_band = math.ceil(MIN_SAMPLES_PER_FWHM * speed / float(rig.fwhm_nm) - 1e-9)
     return max(1, by_refr, by_band)
@@ -85,7 +85,7 @@ def threshold_maps(rig: Rig, height: int, width: int, *, key: PRNGKeyArray):
 def _check_sweep_fits(rig: Rig, offsets: np.ndarray):
     """The band must be below the channels at t=0 and above them at t=P, per column."""
     lam0 = float(rig.sweep_start_nm)
-    speed = float(rig.beta_nm_per_rad * rig.omega_rad_per_us)
+    speed = float(rig.band_speed_nm_per_us)
     period = float(rig.period_us)
     fwhm = float(rig.fwhm_nm)
     start = lam0 + speed * offsets
@@ -113,7 +113,7 @@ def _windows(rig, table: BandTable, offsets, n_samples, dt, chunk_columns):
     overlaps the channels by < 1e-10 of its peak), clipped to the table.
     """
     lam0 = float(rig.sweep_start_nm)
-    speed = float(rig.beta_nm_per_rad * rig.omega_rad_per_us)
+    speed = float(rig.band_speed_nm_per_us)
     margin = 3.0 * max(float(rig.fwhm_nm), 4.0)
     lo = max(table.lo_nm, rig.grid.start_nm - margin)
     hi = min(

@@ -132,7 +132,7 @@ def test_jitter_and_latency_shift_times(ideal_capture):
 def test_sweep_curvature_and_band_profile():
     rig = ev.Rig(sweep_curvature_nm=3.0)
     lin = ev.Rig()
-    speed = float(lin.beta_nm_per_rad * lin.omega_rad_per_us)
+    speed = float(lin.band_speed_nm_per_us)
     t_mid = (580.0 - float(lin.sweep_start_nm)) / speed
     assert abs(float(rig.band_centre_nm(t_mid, 0.0)) - 583.0) < 1e-3
     t_end = (400.0 - float(lin.sweep_start_nm)) / speed

@@ -285,7 +285,7 @@ def matched_frame_count(
 def _design(rig: Rig) -> tuple[Float[Array, "g wl"], np.ndarray]:
     """The shared design matrix on the full-bandwidth band-centre grid, and the grid."""
     table = band_table(rig).channels(rig.grid.sub)
-    step = float(rig.beta_nm_per_rad * rig.omega_rad_per_us * rig.period_us)
+    step = float(rig.band_speed_nm_per_us * rig.period_us)
     step /= rig.samples_per_sweep
     hi = table.lo_nm + table.step_nm * (table.values.shape[0] - 1)
     lam = table.lo_nm + step * np.arange(int(math.floor((hi - table.lo_nm) / step)) + 1)
@@ -297,7 +297,7 @@ def interpolate_traces(
 ) -> Float[Array, "h w g"]:
     """Each pixel's frames, linearly interpolated (periodically) onto band centres."""
     inten = jnp.asarray(stack.intensity())  # (F, H, W)
-    speed = float(rig.beta_nm_per_rad * rig.omega_rad_per_us)
+    speed = float(rig.band_speed_nm_per_us)
     offsets = rig.column_offsets(inten.shape[2]).astype(inten.dtype)
     t_g = jnp.asarray((lam_nm - float(rig.sweep_start_nm)) / speed, inten.dtype)
     t_f = jnp.asarray(stack.t_us, inten.dtype)

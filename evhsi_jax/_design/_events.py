@@ -96,7 +96,7 @@ def band_grid(rig: Rig, n_steps: int):
     lo = rig.grid.start_nm - 3.0 * rig.fwhm_nm
     hi = rig.grid.stop_nm + 3.0 * rig.fwhm_nm
     lam = lo + (hi - lo) * (jnp.arange(n_steps + 1, dtype=dtype) / n_steps)
-    speed = rig.beta_nm_per_rad * rig.omega_rad_per_us  # nm/µs
+    speed = rig.band_speed_nm_per_us  # nm/µs
     return lam, (lam - rig.sweep_start_nm) / speed
 
 
@@ -169,8 +169,8 @@ def pixel_qp(
     dtype = log_col.dtype
     k_slots = step.shape[0]
     n1 = lam.shape[0]
-    c1 = rig.baseline_rel + rig.log_eps
-    speed = rig.beta_nm_per_rad * rig.omega_rad_per_us
+    c1 = rig.baseline_level
+    speed = rig.band_speed_nm_per_us
     eta = rig.refractory_us
     thr = 0.5 * (rig.threshold_on + rig.threshold_off)
     trace = BandTable(trace_col[:, None], trace_lo_nm, trace_step_nm)

@@ -155,7 +155,7 @@ def select_sweeps(
 def _no_event_answer(rig: Rig, m: int) -> float:
     """Reflectance for a pixel without events: half the largest flat reflectance that
     stays below the ON threshold (a white-normalised peak of ρ gives ρ)."""
-    c1 = float(rig.baseline_rel + rig.log_eps)
+    c1 = float(rig.baseline_level)
     return 0.5 * c1 * math.expm1(float(rig.threshold_on))
 
 

@@ -189,7 +189,7 @@ def spectral_prior_matrix(m: int, m_start_frac: float, kind: str = "dct") -> np.
 def lit_interval_us(rig: Rig, column_offset_us):
     """Local times (within a sweep) at which the band starts and stops touching the
     channel range (band centre at channel start − 2 FWHM and stop + 2 FWHM)."""
-    speed = rig.beta_nm_per_rad * rig.omega_rad_per_us
+    speed = rig.band_speed_nm_per_us
     lo = rig.grid.start_nm - 2.0 * rig.fwhm_nm
     hi = rig.grid.stop_nm + 2.0 * rig.fwhm_nm
     u_arr = (lo - rig.sweep_start_nm) / speed - column_offset_us
@@ -261,7 +261,7 @@ def pixel_system(
     m = table.values.shape[1]
     k = t_us.shape[0]
     t0_phase_us = jnp.asarray(t0_phase_us, dtype)
-    c1 = rig.baseline_rel + rig.log_eps
+    c1 = rig.baseline_level
     log_c1 = jnp.log(c1)
     eta = rig.refractory_us
     period = rig.period_us
@@ -348,7 +348,7 @@ def pixel_system(
     # intensity there is pulled towards the interpolation of the gap's two ends. A gap
     # end is an event (its intensity a·x + c') or, before the band arrives / after the
     # last event of the sweep, the baseline c' (a = 0).
-    speed = rig.beta_nm_per_rad * rig.omega_rad_per_us  # nm/µs
+    speed = rig.band_speed_nm_per_us  # nm/µs
     tau0 = rig.grid.width_nm / speed  # µs for the band to move one channel
     g = cfg.int_points
     sw = jnp.arange(sweeps, dtype=dtype)
