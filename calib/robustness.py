@@ -72,7 +72,7 @@ def main():
     ap.add_argument("--out", default=str(HERE / "out" / "robustness.json"))
     args = ap.parse_args()
     cfg = json.loads((HERE / "config.json").read_text())
-    h, w = ev.parse_size(args.size)
+    h, w = ev.forward.parse_size(args.size)
     truth = true_rig(cfg, w, HERE)
     tau_true = np.asarray(truth.column_offsets(w), np.float64)
     chart = ev.load_scene("gray-chart", (h, w))

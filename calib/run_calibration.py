@@ -52,7 +52,7 @@ def true_rig(cfg: dict, width: int, base: Path) -> ev.Rig:
     tilt = cfg.get("true_camera_tilt", 0.0)
     if tilt:
         wl = np.arange(400.5, 760, 1.0)
-        d = ev.default_camera_response(wl) * (1 + tilt * (wl - 580.0) / 180.0)
+        d = ev.forward.default_camera_response(wl) * (1 + tilt * (wl - 580.0) / 180.0)
         data["camera_response"] = {"wavelengths_nm": wl.tolist(), "values": d.tolist()}
     return ev.Rig.from_dict(data)
 
@@ -96,7 +96,7 @@ def main():
     simulated = cfg.get("capture") is None
     chart_name = cfg.get("chart", "gray-chart")
     if simulated:
-        h, w = ev.parse_size(args.size or cfg["size"])
+        h, w = ev.forward.parse_size(args.size or cfg["size"])
         truth = true_rig(cfg, w, cfg_path.parent)
         key = jr.key(cfg.get("seed", 0))  # one key = one sensor (its threshold map)
         chart = ev.load_scene(chart_name, (h, w))
@@ -179,8 +179,8 @@ def main():
         white = ev.Scene(pal[None], wl, np.zeros((h, w), int), ("white",))
         ev_white = ev.simulate(white, truth, sweeps=1, key=key)
         cube_white = ev.reconstruct(ev_white, rig, **maps)
-        factors = ev.spectral_correction(cube_white, white.truth_cube(rig.grid)[0, 0])
-        corrected = ev.apply_spectral_correction(rig, factors)
+        factors = ev.calibration.spectral_correction(cube_white, white.truth_cube(rig.grid)[0, 0])
+        corrected = ev.calibration.apply_spectral_correction(rig, factors)
         cfg_c = corrected.to_dict()
         cfg_c["threshold_map"] = "calibration_thresholds.npz"
         cfg_c["comment"] = "calibration.json with D(λ) corrected from a white reference"
@@ -244,9 +244,9 @@ def _plot(path, events, chart, rig, res, tau_fit, tau_true):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    data = ev.chart_data(events, chart, rig, rows_per_label=2)
-    resid = np.asarray(ev.chart_residuals(rig, data))
-    steps = np.asarray(ev.chart_log_steps(rig, data))
+    data = ev.calibration.chart_data(events, chart, rig, rows_per_label=2)
+    resid = np.asarray(ev.calibration.chart_residuals(rig, data))
+    steps = np.asarray(ev.calibration.chart_log_steps(rig, data))
     fig, axes = plt.subplots(1, 3, figsize=(14, 3.8))
     axes[0].hist(resid[data.mask], bins=80)
     axes[0].set_title("event residuals (thresholds), global thresholds")

@@ -15,7 +15,7 @@
 - `.zarr`: a Zarr store (through xarray) holding one cube as the variable
   `reflectance` (y, x, wavelength) with a `wavelength` coordinate in nm. The per-sweep
   *video* store, with a `time` axis, is written by :mod:`evhsi_jax._stream` and is
-  read sweep by sweep with :func:`evhsi_jax.iter_sweep_cubes`.
+  read sweep by sweep with :func:`evhsi_jax.video.iter_sweep_cubes`.
 
 All writes are whole or nothing: every file of a cube is written under a temporary
 name in the destination folder and renamed into place, the entry file (`.hdr`, the
@@ -234,7 +234,7 @@ def _load_zarr(path: Path) -> dict:
         if "time" in refl.dims:
             raise ValueError(
                 f"{path} is a video store of {refl.sizes['time']} sweeps: read it "
-                "with evhsi_jax.iter_sweep_cubes, or take one sweep with `evhsi "
+                "with evhsi_jax.video.iter_sweep_cubes, or take one sweep with `evhsi "
                 "convert STORE --sweep K OUT`"
             )
         out = {

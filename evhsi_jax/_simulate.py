@@ -256,7 +256,7 @@ def simulate(
     - `chunk_columns`: columns per chunk (memory ∝ chunk × window length).
     - `progress`: show a progress bar.
     - `return_info`: also return a :class:`SimulationInfo` (threshold maps, …).
-    - `mesh`: a `jax.sharding.Mesh` (:func:`evhsi_jax.pixel_mesh`): run its
+    - `mesh`: a `jax.sharding.Mesh` (:func:`evhsi_jax.sharding.pixel_mesh`): run its
       `mesh.size` column chunks at once, one per device; the events equal the
       single-device run's. Default: one device.
     - `key`: PRNG key for thresholds and noise events.

@@ -19,7 +19,7 @@ import evhsi_jax as ev
 
 
 def variants():
-    full = ev.ProblemConfig()
+    full = ev.reconstruction.ProblemConfig()
     return {
         "(a) no non-negativity": (full, "unconstrained"),
         "(b) no spectral prior": (dataclasses.replace(full, alpha_spec=0.0), "auto"),

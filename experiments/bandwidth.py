@@ -139,19 +139,19 @@ def study_scene(name, size, rig, prior, basis, counts, key, mismatch):
     scene = ev.load_scene(name, size)
     truth = scene.truth_cube(rig.grid)
     h, w = size
-    full_bytes = ev.frame_bytes(rig.samples_per_sweep, w, h)
+    full_bytes = ev.io.frame_bytes(rig.samples_per_sweep, w, h)
     k_ev, k_fr, k_mm = jr.split(key, 3)
     out = {"size": [h, w]}
 
     with Timer() as t:
         events = ev.simulate(scene, rig, key=k_ev)
         ours = ev.reconstruct(events, rig)
-    nominal = ev.nominal_event_bytes(len(events), 16)
+    nominal = ev.io.nominal_event_bytes(len(events), 16)
     out["ours"] = {
         "events": len(events),
         "events_per_pixel": len(events) / (h * w),
         "bytes_nominal16": nominal,
-        "bytes_evt3": ev.evt3_bytes(events),
+        "bytes_evt3": ev.io.evt3_bytes(events),
         "fraction_of_full": nominal / full_bytes,
         "wall_s": round(t.seconds, 2),
         **metrics(ours, truth),
@@ -161,7 +161,7 @@ def study_scene(name, size, rig, prior, basis, counts, key, mismatch):
         ev_m = ev.simulate(scene, rig_m, key=k_mm)
         out["ours_mismatch"] = {
             "events": len(ev_m),
-            "bytes_nominal16": ev.nominal_event_bytes(len(ev_m), 16),
+            "bytes_nominal16": ev.io.nominal_event_bytes(len(ev_m), 16),
             **metrics(ev.reconstruct(ev_m, rig_m), truth),
         }
     out["basis"] = metrics(np.asarray(bl.basis_project(truth, basis)), truth)
@@ -221,7 +221,7 @@ def prior_sensitivity(rig, size, prior, key):
     truth = scene.truth_cube(rig.grid)
     k_ev, k_fr = jr.split(key)
     events = ev.simulate(scene, rig, key=k_ev)
-    base = ev.ProblemConfig()
+    base = ev.reconstruction.ProblemConfig()
     rows = []
     for f in (100.0, 10.0, 1.0, 0.1):
         cfg = dataclasses.replace(base, alpha_spec=base.alpha_spec * f)
@@ -476,7 +476,8 @@ def main(argv=None):
                 sens,
                 ["method", "alpha", "sam_deg", "psnr_db", "ssim", "rms"],
                 f"Rainbow: spectral-prior weight sensitivity ({t_sens.seconds:.0f} s; "
-                f"defaults: ours {ev.ProblemConfig().alpha_spec:g}, frames {prior[1]:g},"
+                f"defaults: ours {ev.reconstruction.ProblemConfig().alpha_spec:g}, "
+                f"frames {prior[1]:g},"
                 " both chosen on tcs + sharp)",
             )
         )
@@ -497,7 +498,7 @@ def main(argv=None):
                 "frame_bits": 8,
                 "bits_per_event": 16,
                 "frame_prior": {"kind": prior[0], "alpha": prior[1]},
-                "ours_config": dataclasses.asdict(ev.ProblemConfig()),
+                "ours_config": dataclasses.asdict(ev.reconstruction.ProblemConfig()),
                 "basis_size": BASIS_SIZE,
                 "basis": basis.name,
                 "basis_training_size": basis.training_size,

@@ -40,12 +40,9 @@ from pathlib import Path
 
 import numpy as np
 
-try:  # the public API (re-exported at the top level once wired)
-    from evhsi_jax import EventReader, EventStream, evt3_bytes, write_evt3
-except ImportError:  # pragma: no cover - before the top-level re-export exists
-    from evhsi_jax import EventStream
-    from evhsi_jax._io import EventReader, evt3_bytes, write_evt3
+from evhsi_jax import EventStream
 from evhsi_jax._io._jit import use_backend  # the benchmark compares the two paths
+from evhsi_jax.io import EventReader, evt3_bytes, write_evt3
 
 OURS, REFERENCE = "evhsi_jax (numba)", "evhsi_jax (NumPy)"
 

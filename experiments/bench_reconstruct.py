@@ -8,7 +8,7 @@ issue's target of 20,000 px/s on 2 cores.
 
 One XLA CPU device keeps only ~1.4 of 2 cores busy in this loop. With `--devices N` the
 script asks XLA for N host devices (`XLA_FLAGS=--xla_force_host_platform_device_count=N`,
-set before JAX starts) and shards the pixels over them (`mesh=ev.pixel_mesh(N)`), which
+set before JAX starts) and shards the pixels over them (`mesh=ev.sharding.pixel_mesh(N)`), which
 fills both cores.
 
 Run: `.venv/bin/python experiments/bench_reconstruct.py [--size 96x144] [--repeats 5]
@@ -39,7 +39,7 @@ def main():
 
     import evhsi_jax as ev
 
-    h, w = ev.parse_size(args.size)
+    h, w = ev.forward.parse_size(args.size)
     rig = ev.Rig()
     scene = ev.load_scene("colorchecker", (h, w))
     events, info = ev.simulate(scene, rig, sweeps=1, key=jr.key(0), return_info=True)
@@ -49,7 +49,7 @@ def main():
         solver=args.solver,
     )
     if args.devices > 1:
-        kw["mesh"] = ev.pixel_mesh(args.devices)
+        kw["mesh"] = ev.sharding.pixel_mesh(args.devices)
     ev.reconstruct(events, rig, **kw)
     times = []
     c0 = time.process_time()

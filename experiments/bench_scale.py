@@ -43,7 +43,7 @@ def child(args) -> dict:
 
     h, w = (int(v) for v in args.size.split("x"))
     rig = ev.Rig()
-    mesh = ev.pixel_mesh(args.devices) if args.devices > 1 else None
+    mesh = ev.sharding.pixel_mesh(args.devices) if args.devices > 1 else None
     scene = ev.load_scene("colorchecker", (h, w))
     key = jr.key(0)
     ev_path = Path(args.cache) / f"cc_{h}x{w}_{args.sweeps}.raw"

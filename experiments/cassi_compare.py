@@ -162,7 +162,7 @@ def figure(path, truth, cubes, wl, title):
         )
         if name != "truth":
             im = axes[2, j].imshow(
-                ev.sam_map_deg(cube, truth),
+                ev.metrics.sam_map_deg(cube, truth),
                 cmap="magma",
                 vmin=0,
                 vmax=30,
@@ -240,7 +240,7 @@ def main(argv=None):
             )
         res = {
             "events": len(events),
-            "event_bytes": ev.nominal_event_bytes(len(events)),
+            "event_bytes": ev.io.nominal_event_bytes(len(events)),
             "ours_wall_s": round(t_ours.seconds, 1),
             "runs": [],
         }

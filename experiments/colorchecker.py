@@ -24,7 +24,7 @@ def main():
     ap.add_argument("--seeds", type=int, default=5)
     ap.add_argument("--size", default="96x144")
     args = ap.parse_args()
-    size = ev.parse_size(args.size)
+    size = ev.forward.parse_size(args.size)
     runs = {"nominal": [], "per-pixel": []}
     patch_rows = []
     for seed in range(args.seeds):
@@ -44,7 +44,7 @@ def main():
             )
             if mode == "per-pixel":
                 patch_rows.append(
-                    ev.per_label_table(cube, truth, scene.labels, scene.names)
+                    ev.metrics.per_label_table(cube, truth, scene.labels, scene.names)
                 )
                 last = (cube, truth, scene, rig)
             print(

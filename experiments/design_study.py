@@ -52,8 +52,8 @@ from _common import OUT, machine, pyplot, save  # noqa: E402
 # (every XLA worker idle, Python waiting on a result) three times on a busy 2-core VM.
 jax.config.update("jax_cpu_enable_async_dispatch", False)
 
-SPACE = ev.DesignSpace(sweep_rate_hz=(3.0, 60.0), beta_nm_per_rad=(160.0, 400.0))
-LIMITS = ev.DesignLimits()
+SPACE = ev.design.DesignSpace(sweep_rate_hz=(3.0, 60.0), beta_nm_per_rad=(160.0, 400.0))
+LIMITS = ev.design.DesignLimits()
 SPREAD = 0.067  # threshold mismatch relative to C: the paper's N(0.15, 0.01)
 NAMES = ("fwhm_nm", "beta_nm_per_rad", "baseline_rel", "threshold", "sweep_rate_hz")
 # Central finite-difference factors of the exact pipeline (multiplicative).
@@ -66,13 +66,13 @@ FD_FACTOR = {
 }
 
 
-def replace(p: ev.DesignParams, **kw) -> ev.DesignParams:
+def replace(p: ev.design.DesignParams, **kw) -> ev.design.DesignParams:
     d = p.as_dict()
     d.update({k: float(v) for k, v in kw.items()})
-    return ev.DesignParams.from_dict(d)
+    return ev.design.DesignParams.from_dict(d)
 
 
-def fit_geometry(p: ev.DesignParams, fwhm_nm: float | None = None) -> ev.DesignParams:
+def fit_geometry(p: ev.design.DesignParams, fwhm_nm: float | None = None) -> ev.design.DesignParams:
     """`p` (with `fwhm_nm` if given) with λ0 lowered and β raised just enough for the
     sweep to cover the channels ± 2 FWHM at every column (else `simulate` refuses);
     λ0 leaves the error unchanged (it only shifts event times), β hardly changes it."""
@@ -87,7 +87,7 @@ def fit_geometry(p: ev.DesignParams, fwhm_nm: float | None = None) -> ev.DesignP
 def held_out(p, cfg):
     """Exact simulate + reconstruct on the ColorChecker, averaged over seeds."""
     rows = [
-        ev.evaluate_design(
+        ev.design.evaluate_design(
             p,
             "colorchecker",
             base_rig=ev.Rig(threshold_sigma=0.0),
@@ -111,10 +111,10 @@ def held_out(p, cfg):
 
 def training_exact(p, cfg, seed=0, base_rig=None):
     """Exact-pipeline log-MSE on the training spectra (the design loss's own set)."""
-    scene = ev.training_scene(
+    scene = ev.design.training_scene(
         gains=cfg["gains"], repeats=cfg["train_rows"], limit=cfg["spectra"]
     )
-    r = ev.evaluate_design(
+    r = ev.design.evaluate_design(
         p,
         scene,
         base_rig=base_rig or ev.Rig(threshold_sigma=0.0),
@@ -130,7 +130,7 @@ def training_exact(p, cfg, seed=0, base_rig=None):
 def _vg(score: bool):
     @eqx.filter_jit
     def vg(problem, u, key):
-        return ev.design_value_and_grad(problem, u, key=key, score=score)
+        return ev.design.design_value_and_grad(problem, u, key=key, score=score)
 
     return vg
 
@@ -415,7 +415,7 @@ def sweep_scan(path, rates=(2.4, 2.6, 2.8, 3.0, 3.2, 3.4, 3.6, 3.75), seeds=(0, 
     and for seed 0 with a 1 µs instead of 50 µs refractory period."""
     d = json.loads(Path(path).read_text())
     cfg = {k: tuple(v) if isinstance(v, list) else v for k, v in d["config"].items()}
-    p = ev.DesignParams.from_dict(d["held_out"]["optimum"]["params"])
+    p = ev.design.DesignParams.from_dict(d["held_out"]["optimum"]["params"])
     short = ev.Rig(threshold_sigma=0.0, refractory_us=1.0)
     print(
         "| sweeps/s | "
@@ -496,10 +496,10 @@ def main(argv=None):
         name = "design_study"
     if args.steps is not None:
         cfg["steps"] = args.steps
-    problem = ev.design_problem(
+    problem = ev.design.design_problem(
         spectra_limit=cfg["spectra"], gains=cfg["gains"], space=SPACE, limits=LIMITS
     )
-    p_def = ev.DesignParams.from_rig(ev.Rig())
+    p_def = ev.design.DesignParams.from_rig(ev.Rig())
     print(
         f"training pixels {problem.truth.shape[0]}, time grid "
         f"{problem.structure.n_steps} steps; start {p_def.as_dict()}",
@@ -513,7 +513,7 @@ def main(argv=None):
     OUT.mkdir(exist_ok=True)
     for label, p0 in starts.items():
         print(f"--- start: {label}", flush=True)
-        runs[label] = ev.optimise_design(
+        runs[label] = ev.design.optimise_design(
             problem,
             p0,
             steps=cfg["steps"],
@@ -523,7 +523,7 @@ def main(argv=None):
             print_every=10,
             key=jr.key(0),
         )
-        ev.save_trajectory(
+        ev.design.save_trajectory(
             OUT / f"{name}_trajectory_{label}.json", runs[label], config=cfg
         )
     for label, p in [(k, r.params) for k, r in runs.items()] + [

@@ -81,7 +81,7 @@ def live_run(raw: Path, cal, out: Path, roi=None, speed: float = 1.0) -> dict:
     lat = np.array(lat[1:-1])  # not the first (compilation) nor the last (idle end)
     # every sweep against the same run on the finished file
     ev.reconstruct_sweeps(raw, cal, out.parent / "offline", roi=roi, preview=False)
-    pairs = zip(ev.iter_sweep_cubes(out), ev.iter_sweep_cubes(out.parent / "offline"))
+    pairs = zip(ev.video.iter_sweep_cubes(out), ev.video.iter_sweep_cubes(out.parent / "offline"))
     equal = [bool(np.array_equal(a["cube"], b["cube"])) for (_, a), (_, b) in pairs]
     return {
         "sweeps_equal_to_offline": f"{sum(equal)} of {len(equal)}",

@@ -27,18 +27,18 @@ def main():
             a_sel, b_sel = scene.labels == k, scene.labels == k + 4
             ta, tb = truth[a_sel][0], truth[b_sel][0]
             ra, rb = cube[a_sel], cube[b_sel]
-            own_a = ev.sam_map_deg(ra, np.broadcast_to(ta, ra.shape))
-            twin_a = ev.sam_map_deg(ra, np.broadcast_to(tb, ra.shape))
-            own_b = ev.sam_map_deg(rb, np.broadcast_to(tb, rb.shape))
-            twin_b = ev.sam_map_deg(rb, np.broadcast_to(ta, rb.shape))
+            own_a = ev.metrics.sam_map_deg(ra, np.broadcast_to(ta, ra.shape))
+            twin_a = ev.metrics.sam_map_deg(ra, np.broadcast_to(tb, ra.shape))
+            own_b = ev.metrics.sam_map_deg(rb, np.broadcast_to(tb, rb.shape))
+            twin_b = ev.metrics.sam_map_deg(rb, np.broadcast_to(ta, rb.shape))
             told = float(np.mean(np.concatenate([own_a < twin_a, own_b < twin_b])))
             srgb = ev.cube_to_srgb(np.stack([ta, tb])[None], rig.wavelengths_nm)[0]
             pairs.append(
                 {
                     "pair": scene.names[k],
                     "told_apart_fraction": told,
-                    "true_twin_sam_deg": float(ev.sam_map_deg(ta, tb)),
-                    "recon_twin_sam_deg": float(ev.sam_map_deg(ra.mean(0), rb.mean(0))),
+                    "true_twin_sam_deg": float(ev.metrics.sam_map_deg(ta, tb)),
+                    "recon_twin_sam_deg": float(ev.metrics.sam_map_deg(ra.mean(0), rb.mean(0))),
                     "truth_srgb_max_diff_8bit": float(
                         255 * np.abs(srgb[0] - srgb[1]).max()
                     ),

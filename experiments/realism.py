@@ -51,7 +51,7 @@ EFFECTS = {
     "on_off_correlation": [0.8, 0.5, 0.0],
 }
 DEFAULT_MAGNITUDE = {  # the `realistic` preset's value of each effect
-    k: v for k, v in ev.SENSOR_PRESETS["realistic"].items() if k in EFFECTS
+    k: v for k, v in ev.forward.SENSOR_PRESETS["realistic"].items() if k in EFFECTS
 }
 MODERATE_MIX = {
     "threshold_noise": 0.01,

@@ -35,7 +35,7 @@ def main():
     from _common import save
 
     rig = ev.Rig()
-    scenes = ev.dynamic_scene("mixed", (6, 12), sweeps=2)
+    scenes = ev.forward.dynamic_scene("mixed", (6, 12), sweeps=2)
     events = ev.simulate(scenes, rig, sweeps=2, chunk_columns=4, key=jr.key(1))
     plain = {
         c: ev.reconstruct(events, rig, chunk_pixels=c, sub_batch=1) for c in (4, 16, 64)
@@ -53,7 +53,7 @@ def main():
         "sharded_max_abs_diff": {},
     }
     if len(jax.devices()) > 1:
-        mesh = ev.pixel_mesh()
+        mesh = ev.sharding.pixel_mesh()
         for c in (1, 4, 16):
             cube = ev.reconstruct(events, rig, chunk_pixels=c, sub_batch=1, mesh=mesh)
             out["sharded_max_abs_diff"][c] = float(np.abs(cube - ref).max())

@@ -67,7 +67,7 @@ def run(dtype: str, size, repeats, configs):
             threshold_on_map=info.threshold_on, threshold_off_map=info.threshold_off
         )
         for name, opts in configs:
-            spec = ev.SolverSpec(name, **opts)
+            spec = ev.reconstruction.SolverSpec(name, **opts)
             t0 = time.perf_counter()
             cube, rinfo = ev.reconstruct(
                 events, rig, solver=spec, return_info=True, **kw
@@ -110,7 +110,7 @@ def main():
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--quick", action="store_true", help="fewer configurations")
     args = ap.parse_args()
-    size = ev.parse_size(args.size)
+    size = ev.forward.parse_size(args.size)
     configs = CONFIGS if not args.quick else [CONFIGS[0], CONFIGS[3], CONFIGS[8]]
     rows32 = run("float32", size, args.repeats, configs)
     # float64 repeats only the configurations whose float32 first call took under
@@ -174,10 +174,10 @@ def summarise(rows) -> dict:
     }
     for r in rows:
         ref = refs[r["dtype"]]
-        r["sam_to_converged_deg"] = float(ev.sam_deg(r["cube"], ref["cube"]))
+        r["sam_to_converged_deg"] = float(ev.metrics.sam_deg(r["cube"], ref["cube"]))
         if refs["float64"] is not None:
             r["sam_to_float64_converged_deg"] = float(
-                ev.sam_deg(r["cube"], refs["float64"]["cube"])
+                ev.metrics.sam_deg(r["cube"], refs["float64"]["cube"])
             )
         r["equal_accuracy"] = bool(r["sam_to_converged_deg"] <= 0.1)
     return speed_summary(rows)

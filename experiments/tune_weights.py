@@ -99,7 +99,7 @@ def main():
     t0 = time.perf_counter()
     for vals in itertools.product(*grid.values()):
         params = dict(zip(grid, vals))
-        cfg = ev.ProblemConfig(**params)
+        cfg = ev.reconstruction.ProblemConfig(**params)
         key = json.dumps(params, sort_keys=True)
         for name in scenes:
             cube = ev.reconstruct(streams[name], rig, config=cfg)

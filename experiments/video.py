@@ -83,12 +83,12 @@ def measured(code: str, args: list[str], work: Path) -> dict:
 
 def score(out_dir: Path, scenes, rig) -> list[dict]:
     """Per-sweep SAM/PSNR of a per-sweep dataset against the per-sweep truth."""
-    changed = ev.changed_pixels(scenes, rig.grid)
+    changed = ev.forward.changed_pixels(scenes, rig.grid)
     rows = []
-    for entry, data in ev.iter_sweep_cubes(out_dir):
+    for entry, data in ev.video.iter_sweep_cubes(out_dir):
         k = entry["sweep"]
         truth = scenes[k].truth_cube(rig.grid)
-        sam = ev.sam_map_deg(data["cube"], truth)
+        sam = ev.metrics.sam_map_deg(data["cube"], truth)
         chg = changed[k]
         rows.append(
             {
@@ -96,7 +96,7 @@ def score(out_dir: Path, scenes, rig) -> list[dict]:
                 "events": entry["events"],
                 "low_events": entry["low_events"],
                 "sam_deg": float(sam.mean()),
-                "psnr_db": ev.psnr_db(data["cube"], truth),
+                "psnr_db": ev.metrics.psnr_db(data["cube"], truth),
                 "sam_static_deg": float(sam[~chg].mean()) if (~chg).any() else None,
                 "sam_changed_deg": float(sam[chg].mean()) if chg.any() else None,
                 "changed_frac": float(chg.mean()),
@@ -129,7 +129,7 @@ def presets(size, sweeps, work: Path, rig) -> dict:
     """Short recordings of the single-motion presets, reconstructed in this process."""
     out = {}
     for name in ("translate", "rotate", "iridescent"):
-        scenes = ev.dynamic_scene(name, size, sweeps=sweeps)
+        scenes = ev.forward.dynamic_scene(name, size, sweeps=sweeps)
         events, info = ev.simulate(
             scenes, rig, sweeps=sweeps, key=jr.key(1), return_info=True
         )
@@ -167,7 +167,7 @@ def main():
     if args.quick:
         args.size, args.sweeps, args.preset_sweeps = "24x36", "6,12", 4
     name = "video_quick" if args.quick else "video"  # a smoke run keeps the real one
-    size = ev.parse_size(args.size)
+    size = ev.forward.parse_size(args.size)
     lengths = sorted(int(v) for v in args.sweeps.split(","))
     if len(lengths) != 2 or lengths[0] < 2:
         raise SystemExit("--sweeps: two lengths of at least 2 sweeps, e.g. 30,120")
@@ -181,7 +181,7 @@ def main():
     n_max = lengths[-1]
 
     # 1. Simulate the longest recording once; the short one is its first sweeps.
-    scenes = ev.dynamic_scene("mixed", size, sweeps=n_max)
+    scenes = ev.forward.dynamic_scene("mixed", size, sweeps=n_max)
     t0 = time.perf_counter()
     events, info = ev.simulate(
         scenes, rig, sweeps=n_max, key=jr.key(0), return_info=True
@@ -207,7 +207,7 @@ def main():
         }
     # The per-sweep reference, ablated: each sweep alone with the baseline taken at
     # its start (what cutting the file into sweeps and calling reconstruct gives).
-    sw = ev.split_sweeps(events)
+    sw = ev.io.split_sweeps(events)
     naive = {}
     for k in NAIVE_SWEEPS:
         cube = ev.reconstruct(
@@ -217,7 +217,7 @@ def main():
             threshold_on_map=info.threshold_on,
             threshold_off_map=info.threshold_off,
         )
-        naive[k] = ev.sam_deg(cube, scenes[k].truth_cube(rig.grid))
+        naive[k] = ev.metrics.sam_deg(cube, scenes[k].truth_cube(rig.grid))
     del events, part, sw
     print(f"simulated {n_max} sweeps of {size} in {sim_s:.1f} s", flush=True)
 
@@ -229,7 +229,7 @@ def main():
         args_ += [str(work / "calib.json"), "--out", str(out_dir), "--per-sweep"]
         run = measured(CLI, [*args_, "--quiet", "--restart"], work)
         whole = measured(READ_WHOLE, [str(work / rec["file"])], work)
-        index = ev.load_sweep_index(out_dir)
+        index = ev.video.load_sweep_index(out_dir)
         secs = [e["seconds"] for e in index["sweeps"]]
         rows = score(out_dir, scenes, rig)
         rec.update(
@@ -322,7 +322,7 @@ def figure(plt, recs, lengths, scenes, rig, work):
     ax2.legend(fontsize=8)
     out_dir = work / f"cubes_{lengths[-1]}"
     picks = np.linspace(0, len(rows) - 1, 4).astype(int)
-    entries = ev.load_sweep_index(out_dir)["sweeps"]
+    entries = ev.video.load_sweep_index(out_dir)["sweeps"]
     for j, s in enumerate(picks):
         a = fig.add_subplot(gs[1, j])
         cube = ev.load_cube(out_dir / entries[s]["file"])["cube"]

@@ -5,6 +5,7 @@ The graph is read from the source (every `import` statement, also those inside
 functions), so a hidden cycle through a function-level import counts too."""
 
 import ast
+import inspect
 import itertools
 import sys
 from pathlib import Path
@@ -45,7 +46,11 @@ STAGES = [
             "_demo",
         },
     ),
-    ("interface", {"cli", "__main__", "__init__"}),
+    (
+        "interface",
+        {"cli", "__main__", "__init__", *("forward io reconstruction calibration "
+         "video design baselines sharding metrics").split()},
+    ),
 ]
 RANK = {comp: i for i, (_, comps) in enumerate(STAGES) for comp in comps}
 
@@ -169,3 +174,39 @@ def test_the_checker_sees_a_violation(tmp_path, monkeypatch):
         test_no_private_reach_across_components((mods, edges))
     with pytest.raises(AssertionError, match="import cycles"):
         test_no_import_cycle_between_components((mods, edges))
+
+
+TOP_LEVEL = {
+    "Rig", "Scene", "EventStream", "Calibration", "load_scene", "read_events",
+    "write_events", "load_cube", "save_cube", "load_calibration", "save_calibration",
+    "simulate", "calibrate", "reconstruct", "reconstruct_sweeps", "evaluate",
+    "write_png", "cube_to_srgb", "enable_compilation_cache",
+    "forward", "io", "reconstruction", "calibration", "video", "design", "baselines",
+    "sharding", "metrics",
+}  # fmt: skip
+
+
+def test_public_surface():
+    """The top level is the verbs and the objects they pass; the rest is in the
+    namespaces, whose every name resolves. A name added or dropped fails here, so a
+    change of the public API is a decision (update this set and the README)."""
+    import evhsi_jax as ev
+
+    assert set(ev.__all__) == TOP_LEVEL
+    # (sub-modules a tool imported, e.g. jaxtyping's pytest hook, are not API)
+    public = {
+        n
+        for n in dir(ev)
+        if not n.startswith("_")
+        and (not inspect.ismodule(getattr(ev, n)) or n in ev._NAMESPACES)
+    }
+    assert public == TOP_LEVEL
+    for ns in ev._NAMESPACES:
+        mod = getattr(ev, ns)
+        assert mod.__all__, ns
+        for name in mod.__all__:
+            assert getattr(mod, name) is not None, f"{ns}.{name}"
+        assert {n for n in dir(mod) if not n.startswith("_")} >= set(mod.__all__)
+    # A name that moved off the top level says where it went.
+    with pytest.raises(AttributeError, match=r"evhsi_jax\.calibration\.chart_data"):
+        ev.chart_data  # noqa: B018

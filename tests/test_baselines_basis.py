@@ -42,7 +42,7 @@ def test_training_set_is_disjoint_from_the_colorchecker(grid):
     cc = colour.SDS_COLOURCHECKERS["ColorChecker N Ohta"]
     cc_chan = np.stack(
         [
-            ev.band_integrate(
+            ev.forward.band_integrate(
                 wl, np.interp(wl, sd.wavelengths, sd.values), grid.edges_nm
             )
             for sd in cc.values()
@@ -103,7 +103,7 @@ def test_projection_residual_is_orthogonal_and_narrow_bands_are_lost(grid, basis
         np.asarray(basis_project(proj, basis)), np.asarray(proj), atol=1e-5
     )
     # Eight smooth vectors cannot hold a 10 nm peak.
-    assert ev.sam_deg(np.asarray(proj), np.asarray(truth)) > 10.0
+    assert ev.metrics.sam_deg(np.asarray(proj), np.asarray(truth)) > 10.0
 
 
 def test_learn_basis_recovers_a_low_rank_training_set():

@@ -141,8 +141,8 @@ def test_noiseless_full_bandwidth_frames_recover_the_truth(rig):
     )
     cube = reconstruct_frames(stack, rig, alpha_spec=1e-4, iters=3000)
     assert cube.shape == truth.shape and cube.dtype == np.float32
-    assert ev.sam_deg(cube, truth) < 0.5
-    assert ev.psnr_db(cube, truth) > 45.0
+    assert ev.metrics.sam_deg(cube, truth) < 0.5
+    assert ev.metrics.psnr_db(cube, truth) > 45.0
 
 
 def test_few_frames_lose_accuracy(rig):
@@ -153,7 +153,7 @@ def test_few_frames_lose_accuracy(rig):
     kw = dict(noise_sigma=0.0, bits=16, key=jr.key(0))
     many = reconstruct_frames(capture_frames(scene, rig, frames=600, **kw), rig)
     few = reconstruct_frames(capture_frames(scene, rig, frames=20, **kw), rig)
-    assert ev.sam_deg(few, truth) > 2 * ev.sam_deg(many, truth)
+    assert ev.metrics.sam_deg(few, truth) > 2 * ev.metrics.sam_deg(many, truth)
 
 
 def test_exposure_averages_instantaneous_samples(rig):

@@ -74,10 +74,10 @@ def test_residual_gradients_match_finite_differences(capture):
     truth, chart, events, _ = capture
     with jax.enable_x64(True):
         rig = _true_rig(threshold_sigma=0.0).astype(jnp.float64)
-        data = ev.chart_data(events, chart, rig, rows_per_label=1)
+        data = ev.calibration.chart_data(events, chart, rig, rows_per_label=1)
 
         def loss(r):
-            res = ev.chart_residuals(r, data)
+            res = ev.calibration.chart_residuals(r, data)
             return jnp.sum(res**2)
 
         grad = eqx.filter_grad(loss)(rig)
@@ -113,8 +113,8 @@ def test_gradients_finite_at_hard_points(capture):
     _, chart, events, _ = capture
     with jax.enable_x64(True):
         rig = _true_rig(baseline_rel=0.0, log_eps=1e-9).astype(jnp.float64)
-        data = ev.chart_data(events, chart, rig, rows_per_label=1)
-        grad = eqx.filter_grad(lambda r: jnp.sum(ev.chart_residuals(r, data) ** 2))(rig)
+        data = ev.calibration.chart_data(events, chart, rig, rows_per_label=1)
+        grad = eqx.filter_grad(lambda r: jnp.sum(ev.calibration.chart_residuals(r, data) ** 2))(rig)
         assert all(bool(jnp.all(jnp.isfinite(g))) for g in jax.tree.leaves(grad))
 
 
@@ -145,12 +145,12 @@ def test_spectral_correction_recovers_a_channel_gain():
     ref = np.linspace(0.3, 0.9, 72)
     gain = 1 + 0.1 * np.sin(np.arange(72) / 7)
     cube = ref * gain * (1 + 0.01 * rng.standard_normal((5, 6, 72)))
-    f = ev.spectral_correction(cube, ref)
+    f = ev.calibration.spectral_correction(cube, ref)
     np.testing.assert_allclose(f, gain, rtol=0.01)
-    rig = ev.apply_spectral_correction(ev.Rig(), f)
+    rig = ev.calibration.apply_spectral_correction(ev.Rig(), f)
     assert rig.channel_gain is not None and len(rig.channel_gain) == 72
     with pytest.raises(ValueError):
-        ev.apply_spectral_correction(ev.Rig(), f[:10])
+        ev.calibration.apply_spectral_correction(ev.Rig(), f[:10])
 
 
 def test_cli_calibrate_writes_a_file_reconstruct_reads(tmp_path, capture):

@@ -122,9 +122,9 @@ def test_video_store_equals_the_folder_and_resumes(capture, tmp_path):
     ds = xr.open_zarr(tmp_path / "v.zarr")
     assert ds["reflectance"].dims == ("time", "y", "x", "wavelength")
     assert np.array_equal(ds["wavelength"].values, wl)
-    folder = list(ev.iter_sweep_cubes(tmp_path / "dir"))
+    folder = list(ev.video.iter_sweep_cubes(tmp_path / "dir"))
     assert list(ds["time"].values) == [e["start_us"] for e, _ in folder]
-    for (_, a), (_, b) in zip(folder, ev.iter_sweep_cubes(tmp_path / "v.zarr")):
+    for (_, a), (_, b) in zip(folder, ev.video.iter_sweep_cubes(tmp_path / "v.zarr")):
         assert np.array_equal(a["cube"], b["cube"])
     for i, (_, a) in enumerate(folder):
         assert np.array_equal(ds["reflectance"].values[i], a["cube"])

@@ -15,7 +15,7 @@ import pytest
 import evhsi_jax as ev
 
 # A small box (sweep ≥ 10 /s keeps the time grid at 2560 steps) and 3 spectra.
-SPACE = ev.DesignSpace(sweep_rate_hz=(10.0, 60.0), beta_nm_per_rad=(150.0, 400.0))
+SPACE = ev.design.DesignSpace(sweep_rate_hz=(10.0, 60.0), beta_nm_per_rad=(150.0, 400.0))
 NAMES = (
     "fwhm_nm",
     "beta_nm_per_rad",
@@ -38,20 +38,20 @@ POINTS = {
 @functools.cache
 def _problem():
     """The float64 problem (built once, inside x64)."""
-    return ev.design_problem(spectra_limit=3, gains=(1.0,), space=SPACE)
+    return ev.design.design_problem(spectra_limit=3, gains=(1.0,), space=SPACE)
 
 
 @functools.cache
 def _vag(score: bool):
     @jax.jit
     def f(problem, u, key):
-        return ev.design_value_and_grad(problem, u, key=key, score=score)
+        return ev.design.design_value_and_grad(problem, u, key=key, score=score)
 
     return f
 
 
 def _u(problem, p):
-    return problem.space.to_unconstrained(ev.DesignParams(*p))
+    return problem.space.to_unconstrained(ev.design.DesignParams(*p))
 
 
 @pytest.mark.parametrize("point", sorted(POINTS))
@@ -95,7 +95,7 @@ def test_design_gradient_finite_on_box_edges(corner):
     a, b = corner
     with jax.enable_x64(True):
         problem = _problem()
-        u = ev.DesignParams(a, a, a, b, b, b)
+        u = ev.design.DesignParams(a, a, a, b, b, b)
         loss, grad, aux = _vag(False)(problem, u, jr.key(0))
         p = problem.space.from_unconstrained(u)
     assert problem.space.contains(p)
@@ -109,7 +109,7 @@ def test_design_gradient_finite_on_box_edges(corner):
 def _problem32():
     """The float32 problem: the dtype the optimiser runs in by default. (The float32
     Cholesky failure once seen in a design run is tested directly in test_solvers.)"""
-    return ev.design_problem(spectra_limit=3, gains=(1.0, 0.64), space=SPACE)
+    return ev.design.design_problem(spectra_limit=3, gains=(1.0, 0.64), space=SPACE)
 
 
 def test_design_loss_finite_at_random_points_float32():
@@ -120,7 +120,7 @@ def test_design_loss_finite_at_random_points_float32():
     vag = _vag(True)
     rng = np.random.default_rng(7)
     for i in range(6):
-        u = ev.DesignParams(*rng.normal(0.0, 2.0, len(NAMES)))
+        u = ev.design.DesignParams(*rng.normal(0.0, 2.0, len(NAMES)))
         loss, grad, aux = vag(problem, u, jr.key(i))
         assert loss.dtype == jnp.float32
         g = np.array([float(getattr(grad, k)) for k in NAMES])
@@ -133,23 +133,23 @@ def test_penalties_switch_on():
     """Each hardware limit gives a positive constraint value and penalty once broken,
     and none inside."""
     rig = ev.Rig()
-    lim = ev.DesignLimits()
-    ok = ev.DesignParams(17.5, 185.0, 360.0, 0.03, 0.15, 2.0)
+    lim = ev.design.DesignLimits()
+    ok = ev.design.DesignParams(17.5, 185.0, 360.0, 0.03, 0.15, 2.0)
     # 30 events per pixel and sweep at 2 sweeps/s: 55 Mev/s, under 80.
-    cons = ev.constraint_values(ok, jnp.asarray(30.0), rig, lim)
+    cons = ev.design.constraint_values(ok, jnp.asarray(30.0), rig, lim)
     assert all(float(v) < 0 for v in cons.values()), cons
     from evhsi_jax._design._space import penalty
 
     assert float(penalty(cons, lim)) == 0.0
     broken = {
         "event_rate": (ok, 60.0),  # 60 ev/px at 2 /s: 111 Mev/s
-        "rotation": (ev.DesignParams(17.5, 185.0, 360.0, 0.03, 0.15, 40.0), 1.0),
-        "light": (ev.DesignParams(17.5, 185.0, 360.0, 0.005, 0.15, 2.0), 30.0),
-        "sweep_start": (ev.DesignParams(25.0, 185.0, 360.0, 0.03, 0.15, 2.0), 30.0),
-        "sweep_end": (ev.DesignParams(17.5, 150.0, 360.0, 0.03, 0.15, 2.0), 30.0),
+        "rotation": (ev.design.DesignParams(17.5, 185.0, 360.0, 0.03, 0.15, 40.0), 1.0),
+        "light": (ev.design.DesignParams(17.5, 185.0, 360.0, 0.005, 0.15, 2.0), 30.0),
+        "sweep_start": (ev.design.DesignParams(25.0, 185.0, 360.0, 0.03, 0.15, 2.0), 30.0),
+        "sweep_end": (ev.design.DesignParams(17.5, 150.0, 360.0, 0.03, 0.15, 2.0), 30.0),
     }
     for name, (p, n_ev) in broken.items():
-        cons = ev.constraint_values(p, jnp.asarray(n_ev), rig, lim)
+        cons = ev.design.constraint_values(p, jnp.asarray(n_ev), rig, lim)
         assert float(cons[name]) > 0, (name, cons)
         others = [float(v) for k, v in cons.items() if k != name]
         assert max(others) < 0, (name, cons)
@@ -172,23 +172,23 @@ def test_design_loss_reports_penalty_and_rate():
 
 
 def test_design_space_round_trip_and_validation():
-    p = ev.DesignParams(*POINTS["narrow"])
+    p = ev.design.DesignParams(*POINTS["narrow"])
     q = SPACE.from_unconstrained(SPACE.to_unconstrained(p))
     np.testing.assert_allclose(
         [q.as_dict()[k] for k in NAMES], [p.as_dict()[k] for k in NAMES], rtol=1e-5
     )
     with pytest.raises(ValueError, match="lo < hi"):
-        ev.DesignSpace(threshold=(0.3, 0.1))
+        ev.design.DesignSpace(threshold=(0.3, 0.1))
     with pytest.raises(ValueError, match="FWHM"):
-        ev.DesignSpace(fwhm_nm=(5.0, 80.0))
+        ev.design.DesignSpace(fwhm_nm=(5.0, 80.0))
 
 
 @pytest.mark.slow  # ~1 min of compilation; notebooks/03_optical_design runs the optimiser
 def test_optimiser_keeps_bounds_and_lowers_loss(tmp_path):
     """Large Adam steps from the default (rate limit broken): every iterate inside
     the box, the loss and the event rate go down, the trajectory file is written."""
-    problem = ev.design_problem(spectra_limit=2, gains=(1.0,), space=SPACE)
-    res = ev.optimise_design(
+    problem = ev.design.design_problem(spectra_limit=2, gains=(1.0,), space=SPACE)
+    res = ev.design.optimise_design(
         problem,
         steps=4,
         learning_rate=0.5,
@@ -205,7 +205,7 @@ def test_optimiser_keeps_bounds_and_lowers_loss(tmp_path):
     assert SPACE.contains(res.params)
     assert traj[-1]["loss"] < 0.5 * traj[0]["loss"]
     assert traj[-1]["event_rate_ev_s"] < traj[0]["event_rate_ev_s"]
-    ev.save_trajectory(tmp_path / "t.json", res)
+    ev.design.save_trajectory(tmp_path / "t.json", res)
     import json
 
     data = json.loads((tmp_path / "t.json").read_text())

@@ -80,7 +80,7 @@ def test_simulate_takes_per_sweep_scenes():
     rig = ev.Rig()
     scenes = dynamic_scene("mixed", (6, 10), sweeps=2)
     events = ev.simulate(scenes, rig, sweeps=2, key=jr.key(0))
-    sw = ev.split_sweeps(events, period_us=float(rig.period_us))
+    sw = ev.io.split_sweeps(events, period_us=float(rig.period_us))
     assert len(sw) == 2 and all(len(s) > 0 for s in sw)
     static = ev.simulate(scenes[0], rig, sweeps=1, key=jr.key(0))
     # The first sweep sees the first scene only: identical events.

@@ -9,15 +9,15 @@ import numpy as np
 import pytest
 import scipy.special
 
-from evhsi_jax import (
-    Rig,
+from evhsi_jax import Rig
+from evhsi_jax._illumination import TABLE_STEP_NM, table_range_nm
+from evhsi_jax.forward import (
     band_table,
     column_time_table,
     fwhm_to_sigma,
     lookup,
     sweep_times_us,
 )
-from evhsi_jax._illumination import TABLE_STEP_NM, table_range_nm
 
 
 def raw_rows(rig, centres_nm, fwhm_nm, points_per_bin=400):

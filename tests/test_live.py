@@ -57,8 +57,8 @@ def test_follow_a_file_being_written(recording, tmp_path):
     assert res.reconstructed == SWEEPS and res.index["complete"]
     # sweeps were reconstructed while the file grew, not all at the end
     assert seen[0] < seen[-1] - 0.1
-    offline = list(ev.iter_sweep_cubes(d / "offline"))
-    for (e1, a), (e2, b) in zip(offline, ev.iter_sweep_cubes(tmp_path / "out")):
+    offline = list(ev.video.iter_sweep_cubes(d / "offline"))
+    for (e1, a), (e2, b) in zip(offline, ev.video.iter_sweep_cubes(tmp_path / "out")):
         assert (e1["start_us"], e1["events"]) == (e2["start_us"], e2["events"])
         np.testing.assert_array_equal(a["cube"], b["cube"])
 
@@ -69,7 +69,7 @@ def test_cli_follow_ends_on_idle_and_on_a_signal(recording, tmp_path, capsys):
     assert main(["reconstruct", str(d / "rec.raw"), "--calib", str(d / "cal.json"),
                  "--out", str(tmp_path / "a"), "--per-sweep", "--follow",
                  "--idle-timeout", "0.3", "--quiet"]) == 0  # fmt: skip
-    assert len(ev.load_sweep_index(tmp_path / "a")["sweeps"]) == SWEEPS
+    assert len(ev.video.load_sweep_index(tmp_path / "a")["sweeps"]) == SWEEPS
     # the run's signal handlers are gone again (main() may run in-process)
     assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
     # SIGTERM while the writer is half-way: the sweeps read so far are finished
@@ -91,7 +91,7 @@ def test_cli_follow_ends_on_idle_and_on_a_signal(recording, tmp_path, capsys):
         writer.kill()
         writer.wait()
     assert proc.returncode == 0, err
-    index = ev.load_sweep_index(tmp_path / "b")
+    index = ev.video.load_sweep_index(tmp_path / "b")
     assert index["complete"] and 2 <= len(index["sweeps"]) < SWEEPS
 
 
@@ -101,8 +101,8 @@ def test_roi_equals_the_crop_of_the_full_cube(recording, tmp_path, capsys):
     res = ev.reconstruct_sweeps(d / "rec.raw", cal, tmp_path / "roi", roi=roi,
                                 preview=False, max_sweeps=3)  # fmt: skip
     assert (res.index["height"], res.index["width"]) == (2, 4)
-    for (_, full), (_, part) in zip(ev.iter_sweep_cubes(d / "offline"),
-                                    ev.iter_sweep_cubes(tmp_path / "roi")):  # fmt: skip
+    for (_, full), (_, part) in zip(ev.video.iter_sweep_cubes(d / "offline"),
+                                    ev.video.iter_sweep_cubes(tmp_path / "roi")):  # fmt: skip
         np.testing.assert_allclose(part["cube"], full["cube"][1:3, 1:5], atol=1e-5)
     assert main(["reconstruct", str(d / "rec.raw"), "--calib", str(d / "cal.json"),
                  "--out", str(tmp_path / "c.npz"), "--roi", "1,1,5,3", "--quiet"]) == 0

@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from evhsi_jax import evaluate, per_label_table, psnr_db, rms, sam_deg, ssim
+from evhsi_jax import evaluate
+from evhsi_jax.metrics import per_label_table, psnr_db, rms, sam_deg, ssim
 
 
 @pytest.fixture

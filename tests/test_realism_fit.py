@@ -47,9 +47,9 @@ def test_calibration_measures_the_optics_blur_and_keeps_border_thresholds():
     true = ev.Rig(threshold_noise=0.01, psf_sigma_px=0.5)
     events, info = ev.simulate(chart, true, sweeps=4, key=jr.key(8), return_info=True)
     rig = true.replace_static(effects=ev.Rig().effects)
-    on, off, psf = ev.threshold_maps_from_chart(events, chart, rig, return_psf=True)
+    on, off, psf = ev.calibration.threshold_maps_from_chart(events, chart, rig, return_psf=True)
     assert psf == 0.5
-    on0, off0 = ev.threshold_maps_from_chart(events, chart, rig, psf_sigmas_px=(0.0,))
+    on0, off0 = ev.calibration.threshold_maps_from_chart(events, chart, rig, psf_sigmas_px=(0.0,))
     labels = chart.labels
     border = np.zeros(labels.shape, bool)
     border[1:] |= labels[1:] != labels[:-1]
@@ -62,7 +62,7 @@ def test_calibration_measures_the_optics_blur_and_keeps_border_thresholds():
     np.testing.assert_allclose(on[~border], on0[~border], atol=2e-4)
     # An ideal (sharp) capture: no blur is found.
     sharp = ev.simulate(chart, ev.Rig(threshold_noise=0.01), sweeps=4, key=jr.key(8))
-    assert ev.threshold_maps_from_chart(sharp, chart, rig, return_psf=True)[2] == 0.0
+    assert ev.calibration.threshold_maps_from_chart(sharp, chart, rig, return_psf=True)[2] == 0.0
 
 
 def test_blurred_scene_matches_a_direct_filter():

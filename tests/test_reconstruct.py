@@ -56,8 +56,8 @@ def test_nominal_thresholds_shift_scale_not_shape(capture, cube_known_thresholds
     known = cube_known_thresholds[0]
     # Threshold mismatch mostly rescales each pixel's spectrum: SAM barely changes,
     # the RMS error grows.
-    assert ev.sam_deg(nominal, truth) < ev.sam_deg(known, truth) + 2.0
-    assert ev.rms(nominal, truth) > ev.rms(known, truth)
+    assert ev.metrics.sam_deg(nominal, truth) < ev.metrics.sam_deg(known, truth) + 2.0
+    assert ev.metrics.rms(nominal, truth) > ev.metrics.rms(known, truth)
 
 
 def test_event_rows_vanish_at_the_truth(capture):
@@ -70,7 +70,7 @@ def test_event_rows_vanish_at_the_truth(capture):
         truth = (
             scene.truth_cube(rig0.grid).reshape(-1, rig0.channels).astype(np.float64)
         )
-        table = ev.band_table(rig0).channels(rig0.grid.sub)
+        table = ev.forward.band_table(rig0).channels(rig0.grid.sub)
         cfg = ProblemConfig(alpha_int=0.0, alpha_spec=0.0, ridge=0.0)
         batches, _, _ = group_pixels(events, t_start_us=0, chunk_pixels=64)
         offsets = np.asarray(rig0.column_offsets(events.width))

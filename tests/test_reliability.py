@@ -321,7 +321,7 @@ def test_per_sweep_folder_is_locked_verified_and_cleaned(files, tmp_path):
     cal = ev.Calibration(ev.Rig())
     res = ev.reconstruct_sweeps(events, cal, out, preview=False)
     assert res.reconstructed == 2
-    index = ev.load_sweep_index(out)
+    index = ev.video.load_sweep_index(out)
     assert all(len(e["sha256"]) == 64 for e in index["sweeps"])
     # a second run while the folder is locked is refused
     fd = os.open(out / LOCK_NAME, os.O_RDWR)

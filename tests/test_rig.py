@@ -11,8 +11,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from evhsi_jax import Rig, SpectralGrid
+from evhsi_jax import Rig
 from evhsi_jax._rig import DEFAULTS
+from evhsi_jax.forward import SpectralGrid
 
 # DESIGN.md, "Defaults: the paper's simulated rig" and the JSON key list.
 DESIGN_DEFAULTS = {

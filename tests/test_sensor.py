@@ -9,8 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from evhsi_jax import (
-    Rig,
+from evhsi_jax import Rig
+from evhsi_jax.forward import (
     band_table,
     column_time_table,
     exact_events_scan,

@@ -15,8 +15,9 @@ import jax.random as jr
 import numpy as np
 import pytest
 
-from evhsi_jax import Rig, Scene, band_table, load_scene, simulate, threshold_maps
+from evhsi_jax import Rig, Scene, load_scene, simulate
 from evhsi_jax._simulate import time_oversampling
+from evhsi_jax.forward import band_table, threshold_maps
 
 H, W = 4, 6
 KEY = jr.key(0)

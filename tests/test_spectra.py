@@ -8,14 +8,14 @@ import pytest
 import scipy.integrate
 import scipy.interpolate
 
-from evhsi_jax import (
+from evhsi_jax._spectra import band_integrate_matrix
+from evhsi_jax.forward import (
     SpectralGrid,
     band_integrate,
     default_camera_response,
     default_lamp_spectrum,
     resample,
 )
-from evhsi_jax._spectra import band_integrate_matrix
 
 
 def dense_bin_means(wl, values, edges, per_nm=2000):

@@ -63,7 +63,7 @@ def test_one_cube_per_sweep_with_the_sweep_accuracy(recording, full_run):
         cube = data["cube"]
         assert cube.shape == (*SIZE, rig.channels) and cube.dtype == np.float32
         assert data["srgb"].dtype == np.uint8 and int(data["sweep"]) == entry["sweep"]
-        sam = ev.sam_map_deg(cube, scene.truth_cube(rig.grid))
+        sam = ev.metrics.sam_map_deg(cube, scene.truth_cube(rig.grid))
         assert sam[~chg].mean() < 6.0, entry  # unchanged pixels: as a static scene
     assert (out / "preview.gif").read_bytes()[:6] == b"GIF89a"
 
@@ -73,12 +73,12 @@ def test_carried_reference_beats_the_baseline(recording, full_run):
     baseline at the sweep start instead is wrong by up to a threshold."""
     rig, scenes, events, _, kw = recording
     out, _ = full_run
-    sw = ev.split_sweeps(events)
+    sw = ev.io.split_sweeps(events)
     k = 2
     truth = scenes[k].truth_cube(rig.grid)
     naive = ev.reconstruct(sw[k], rig, t_start_us=int(sw.start_us[k]), **kw)
     carried = _cubes(out)[k]
-    assert ev.sam_deg(carried, truth) < ev.sam_deg(naive, truth) - 2.0
+    assert ev.metrics.sam_deg(carried, truth) < ev.metrics.sam_deg(naive, truth) - 2.0
 
 
 def test_interrupted_run_resumes_without_redoing_or_corrupting(recording, full_run):
@@ -134,7 +134,7 @@ def test_other_settings_are_refused_unless_overwriting(recording, full_run):
 
 def test_dark_sweep_is_flagged(recording, tmp_path):
     rig, _, events, _, kw = recording
-    sw = ev.split_sweeps(events)
+    sw = ev.io.split_sweeps(events)
     keep = sw.sweep_index() != 1  # occlusion: sweep 1 sends almost nothing
     keep |= np.arange(len(events)) % 50 == 0
     dark = events.take(np.flatnonzero(keep))

@@ -334,7 +334,7 @@ def reconstruct_frames(
     - `alpha_spec`: weight α of the DCT high-frequency prior, relative to the mean
       diagonal of $G^TG$ (0: plain least squares, ill-posed — see the module doc).
     - `prior_kind`: `"d2"` (second differences) or `"dct"` (the paper's high DCT
-      frequencies) — the same priors as :func:`evhsi_jax.spectral_prior_matrix`.
+      frequencies) — the same priors as :func:`evhsi_jax.reconstruction.spectral_prior_matrix`.
     - `m_start_frac`: cut-off frequency of the prior as a fraction of M.
     - `iters`: ADMM iterations (with `nonneg`; ~1e-4 max error after 1000 for
       α ≥ 1e-4).

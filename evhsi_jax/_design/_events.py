@@ -6,7 +6,7 @@ it; its *discrete* part — how many events, which polarity, in which order — 
 constant in the design, and its *continuous* part — when each event fires — is a smooth
 function of the design between changes of structure. So:
 
-1. **Structure** from the exact scan (:func:`~evhsi_jax.exact_events_scan`) on a fine
+1. **Structure** from the exact scan (:func:`~evhsi_jax.forward.exact_events_scan`) on a fine
    grid of band positions λc, held fixed (stop-gradient) at each evaluation.
 2. **Times by the implicit function theorem.** Event k satisfies
    $g_k = L(τ_k) - L(τ_{k-1} + η) - σ_k C = 0$ ($L = \\log(I + ε)$ of the pixel, cubic
@@ -37,7 +37,7 @@ function of the design between changes of structure. So:
    still jumps), and its gradient carries the count effect — that of a threshold
    jitter of scale T.
 
-The soft event model (:func:`~evhsi_jax.soft_event_counts`) gives the expected event
+The soft event model (:func:`~evhsi_jax.forward.soft_event_counts`) gives the expected event
 count for the event-rate limit.
 """
 

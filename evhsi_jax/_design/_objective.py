@@ -10,7 +10,7 @@ $\\mathcal L(θ) = \\log \\overline{\\mathrm{MSE}}(θ) + ρ \\sum_i \\max(0, g_i
   `box_qp`), with events from `_events` (structure held, times by the implicit function
   theorem, smooth existence of marginal events).
 - $g_i$: the hardware limits of :mod:`._space`; the event rate comes from the soft event
-  model (:func:`~evhsi_jax.soft_event_counts`, temperature 0.002: ±1 % of the exact
+  model (:func:`~evhsi_jax.forward.soft_event_counts`, temperature 0.002: ±1 % of the exact
   count on the training set, where 0.01 already over-counts by ~15 %), the mean
   expected events per training pixel and sweep scaled to the full sensor:
   $R = \\bar n \\cdot 1280 \\cdot 720 \\cdot f$ — as if the training reflectances filled

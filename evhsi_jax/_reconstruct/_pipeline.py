@@ -378,7 +378,7 @@ def reconstruct(
     - `progress`: show a progress bar.
     - `return_info`: also return a :class:`ReconstructionInfo`.
     - `mesh`: a `jax.sharding.Mesh` with a `"pixels"` axis
-      (:func:`evhsi_jax.pixel_mesh`): each chunk's pixels are split over its devices,
+      (:func:`evhsi_jax.sharding.pixel_mesh`): each chunk's pixels are split over its devices,
       `chunk_pixels` per device, each with the same per-pixel kernel. A one-device
       mesh gives the plain run's cube bit for bit; on several CPU devices XLA compiles
       the kernel differently and the cube differs by float32 rounding (3e-5 on

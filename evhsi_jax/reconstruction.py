@@ -1,0 +1,25 @@
+"""The per-pixel box-QP reconstruction and its parts.
+
+Public namespace `evhsi_jax.reconstruction`; the implementation lives in private modules."""
+
+from ._reconstruct import SOLVERS as SOLVERS
+from ._reconstruct import ProblemConfig as ProblemConfig
+from ._reconstruct import ReconstructionInfo as ReconstructionInfo
+from ._reconstruct import SolverSpec as SolverSpec
+from ._reconstruct import kkt_residual as kkt_residual
+from ._reconstruct import pixel_system as pixel_system
+from ._reconstruct import reconstruct as reconstruct
+from ._reconstruct import solver_spec as solver_spec
+from ._reconstruct import spectral_prior_matrix as spectral_prior_matrix
+
+__all__ = [
+    "reconstruct",
+    "ProblemConfig",
+    "SolverSpec",
+    "SOLVERS",
+    "solver_spec",
+    "ReconstructionInfo",
+    "pixel_system",
+    "spectral_prior_matrix",
+    "kkt_residual",
+]
