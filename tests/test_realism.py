@@ -9,7 +9,12 @@ import numpy as np
 import pytest
 
 import evhsi_jax as ev
-from evhsi_jax._reconstruct import ProblemConfig, group_pixels, pixel_system
+from evhsi_jax._reconstruct import (
+    PixelEvents,
+    ProblemConfig,
+    group_pixels,
+    pixel_system,
+)
 from evhsi_jax._sensor import exact_events_scan, photoreceptor_lowpass
 from evhsi_jax._simulate import threshold_maps
 
@@ -172,7 +177,7 @@ def test_noise_weights_match_a_numpy_reference():
     off = float(rig.column_offsets(6)[b.column[i]])
     cfg = ProblemConfig()
     sig_c, sig_t = 0.01, 3.0
-    args = (rig, table, cfg, t, pol, mk, off, 0.15, 0.15, 0.0, 1)
+    args = (rig, table, cfg, PixelEvents(t, pol, mk, off, 0.15, 0.15, 0.0), 1)
     rows = pixel_system(*args, noise=jnp.asarray([sig_c, sig_t, 0.0]), return_rows=True)
     plain = pixel_system(*args, return_rows=True)
     # NumPy: slope = C / (t_k - ρ_k), ρ_k = t_{k-1} + η (0 for the first event).
@@ -203,11 +208,13 @@ def test_linearised_lowpass_rows_explain_a_lowpassed_capture():
     res_lin, res_shift = [], []
     for i in np.flatnonzero(b.count > 8)[:6]:
         off = float(rig.column_offsets(6)[b.column[i]])
-        args = (
-            rig, table, ProblemConfig(), jnp.asarray(b.t_us[i], jnp.float32),
-            jnp.asarray(b.polarity[i], jnp.int32), jnp.asarray(b.mask[i]), off, 0.15,
-            0.15, 0.0, 1,
+        px = PixelEvents(
+            jnp.asarray(b.t_us[i], jnp.float32),
+            jnp.asarray(b.polarity[i], jnp.int32),
+            jnp.asarray(b.mask[i]),
+            off, 0.15, 0.15, 0.0,
         )  # fmt: skip
+        args = (rig, table, ProblemConfig(), px, 1)
         x = jnp.asarray(truth[b.pixel[i]], jnp.float32)
         xa = jnp.concatenate([x, jnp.ones(1)])
         noise = jnp.asarray([0.0, 0.0, d_w])

@@ -10,7 +10,12 @@ import numpy as np
 import pytest
 
 import evhsi_jax as ev
-from evhsi_jax._reconstruct import ProblemConfig, group_pixels, pixel_system
+from evhsi_jax._reconstruct import (
+    PixelEvents,
+    ProblemConfig,
+    group_pixels,
+    pixel_system,
+)
 from evhsi_jax._reconstruct._implicit import reconstruct_pixels
 from evhsi_jax._reconstruct._pipeline import _solve_chunk
 
@@ -80,13 +85,15 @@ def test_event_rows_vanish_at_the_truth(capture):
                     rig0,
                     table,
                     cfg,
-                    jnp.asarray(b.t_us[i]),
-                    jnp.asarray(b.polarity[i]),
-                    jnp.asarray(b.mask[i]),
-                    offsets[b.column[i]],
-                    rig0.threshold_on,
-                    rig0.threshold_off,
-                    0.0,
+                    PixelEvents(
+                        jnp.asarray(b.t_us[i]),
+                        jnp.asarray(b.polarity[i]),
+                        jnp.asarray(b.mask[i]),
+                        offsets[b.column[i]],
+                        rig0.threshold_on,
+                        rig0.threshold_off,
+                        0.0,
+                    ),
                     2,
                     return_gram=True,
                 )

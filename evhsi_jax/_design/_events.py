@@ -50,7 +50,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
 from .._illumination import BandTable, band_table, lookup
-from .._reconstruct import ProblemConfig, pixel_system
+from .._reconstruct import PixelEvents, ProblemConfig, pixel_system
 from .._rig import Rig
 from .._sensor import exact_events_scan
 
@@ -247,13 +247,15 @@ def pixel_qp(
         rig,
         channel_table,
         cfg,
-        t_obs,
-        pol,
-        mask,
-        offset_us,
-        rig.threshold_on,
-        rig.threshold_off,
-        jnp.zeros((), dtype),
+        PixelEvents(
+            t_obs,
+            pol,
+            mask,
+            offset_us,
+            rig.threshold_on,
+            rig.threshold_off,
+            jnp.zeros((), dtype),
+        ),
         1,
         event_scale=scale if scfg.weighted_rows else None,
     )

@@ -21,6 +21,7 @@ from ._pipeline import (
 )
 from ._pixels import TIMESTAMP_CENTRE_US as TIMESTAMP_CENTRE_US
 from ._pixels import PixelBatch as PixelBatch
+from ._pixels import PixelEvents as PixelEvents
 from ._pixels import group_pixels as group_pixels
 from ._problem import (
     ProblemConfig as ProblemConfig,

@@ -21,6 +21,7 @@ from jaxtyping import Array, Float
 
 from .._illumination import band_table
 from .._rig import Rig
+from ._pixels import PixelEvents
 from ._problem import ProblemConfig, pixel_system
 from ._solvers import active_set, cho_factor, reduced
 
@@ -98,10 +99,9 @@ def reconstruct_pixels(
         jnp.full((n,), rig.threshold_off, dtype) if threshold_off is None else threshold_off
     )
 
-    def one(t, p, mk, off, con, coff):
-        q_mat, q_vec, _ = pixel_system(
-            rig, table, cfg, t, p, mk, off, con, coff, jnp.zeros((), dtype), sweeps
-        )
+    def one(px):
+        q_mat, q_vec, _ = pixel_system(rig, table, cfg, px, sweeps)
         return box_qp(q_mat, q_vec)
 
-    return jax.vmap(one)(t_us, polarity, mask, offsets, thr_on, thr_off)
+    px = PixelEvents.batch(t_us, polarity, mask, offsets, thr_on, thr_off, 0.0)
+    return jax.vmap(one)(px)

@@ -27,7 +27,7 @@ from .._illumination import band_table
 from .._limits import check_fits
 from .._rig import Rig
 from . import _solvers
-from ._pixels import group_pixels
+from ._pixels import PixelEvents, group_pixels
 from ._problem import ProblemConfig, lit_interval_us, pixel_system, system_from_rows
 
 __all__ = ["SolverSpec", "SOLVERS", "reconstruct", "ReconstructionInfo", "solver_spec"]
@@ -166,22 +166,16 @@ def _solve_chunk(
     cfg: ProblemConfig,
     spec: SolverSpec,
     sub: int,
-    t_us,
-    polarity,
-    mask,
-    offsets,
-    thr_on,
-    thr_off,
-    phase,
+    px: PixelEvents,
     sweeps: int,
     noise=None,
 ):
-    """Assemble and solve a chunk of pixels; returns x (n, M) and KKT residuals.
-    `phase` is a scalar or one value per pixel; `noise` the sensor noise model of
-    :func:`pixel_system` (then the robust reweighting of `cfg.robust_steps` runs)."""
+    """Assemble and solve a chunk of pixels `px` (a batch of `n`); returns x (n, M)
+    and KKT residuals. `noise` is the sensor noise model of :func:`pixel_system` (then
+    the robust reweighting of `cfg.robust_steps` runs)."""
 
-    def system(t, p, mk, off, con, coff, ph):
-        return pixel_system(rig, table, cfg, t, p, mk, off, con, coff, ph, sweeps)[:2]
+    def system(one):
+        return pixel_system(rig, table, cfg, one, sweeps)[:2]
 
     def solve_qp(q_mat, q_vec):
         if spec.name == "active-set":
@@ -193,19 +187,18 @@ def _solve_chunk(
         return x, jax.vmap(_solvers.kkt_residual)(q_mat, q_vec, x)
 
     def robust_batch(args):
-        def rows_of(t, p, mk, off, con, coff, ph, x0=None):
+        def rows_of(one, x0=None):
             return pixel_system(
-                rig, table, cfg, t, p, mk, off, con, coff, ph, sweeps,
-                noise=noise, return_rows=True, x0=x0,
-            )  # fmt: skip
+                rig, table, cfg, one, sweeps, noise=noise, return_rows=True, x0=x0
+            )
 
-        rows = jax.vmap(rows_of)(*args)
+        rows = jax.vmap(rows_of)(args)
         q_mat, q_vec, _ = jax.vmap(lambda r: system_from_rows(cfg, r))(rows)
         x, kkt = solve_qp(q_mat, q_vec)
         for _ in range(cfg.lowpass_passes if sweeps <= 4 else 0):
             # A photoreceptor low-pass: relinearise its model at the current answer.
             def relinearise(rows=rows, x=x):
-                new = jax.vmap(rows_of)(*args, x)
+                new = jax.vmap(rows_of)(args, x)
                 qm, qv, _ = jax.vmap(lambda r: system_from_rows(cfg, r))(new)
                 return (new, *solve_qp(qm, qv))
 
@@ -221,7 +214,7 @@ def _solve_chunk(
             # of that and the pixel's own typical residual (1.4826 × median |z| over
             # its events), so a model error shared by all its rows is not an outlier.
             z = jnp.einsum("bkm,bm->bk", rows.events, xa) / rows.sigma
-            mk = args[2]
+            mk = args.mask
             med = jnp.nanmedian(jnp.where(mk, jnp.abs(z), jnp.nan), axis=1)
             scale = jnp.maximum(1.4826 * jnp.nan_to_num(med), 1.0)
             z = z / scale[:, None]
@@ -238,25 +231,23 @@ def _solve_chunk(
     def one_batch(args):
         if noise is not None and spec.name not in ("svd", "unconstrained"):
             return robust_batch(args)
-        q_mat, q_vec = jax.vmap(system)(*args)
+        q_mat, q_vec = jax.vmap(system)(args)
         if spec.name == "active-set":
             x, kkt, _ = _solvers.active_set_batch(
                 q_mat, q_vec, tol=spec.tol, max_iters=spec.iters
             )
             return x, kkt
         if spec.name == "svd":
-            gram = jax.vmap(lambda *a: _augmented_gram(rig, table, cfg, *a, sweeps))(
-                *args
+            gram = jax.vmap(lambda one: _augmented_gram(rig, table, cfg, one, sweeps))(
+                args
             )
             x = jax.vmap(_solvers.svd_nullvector)(gram)
         else:
             x = jax.vmap(lambda a, b: spec.solve(a, b, None))(q_mat, q_vec)
         return x, jax.vmap(_solvers.kkt_residual)(q_mat, q_vec, x)
 
-    n = t_us.shape[0]
-    phase = jnp.broadcast_to(jnp.asarray(phase, t_us.dtype), (n,))
-    xs = (t_us, polarity, mask, offsets, thr_on, thr_off, phase)
-    xs = jax.tree.map(lambda a: a.reshape((n // sub, sub) + a.shape[1:]), xs)
+    n = px.t_us.shape[0]
+    xs = jax.tree.map(lambda a: a.reshape((n // sub, sub) + a.shape[1:]), px)
     x, kkt = jax.lax.map(one_batch, xs)
     return x.reshape(n, -1), kkt.reshape(n)
 
@@ -267,13 +258,7 @@ def _solve_robust(
     table,
     cfg: ProblemConfig,
     iters: int,
-    t_us,
-    polarity,
-    mask,
-    offsets,
-    thr_on,
-    thr_off,
-    phase,
+    px: PixelEvents,
     sweeps: int,
     noise=None,
 ):
@@ -284,23 +269,18 @@ def _solve_robust(
     priors). Same arguments as :func:`_solve_chunk`, minus the solver and sub-batch."""
 
     def one(args):
-        t, p, mk, off, con, coff, ph = args
-        q_mat, q_vec = pixel_system(
-            rig, table, cfg, t, p, mk, off, con, coff, ph, sweeps, noise=noise
-        )[:2]
+        q_mat, q_vec = pixel_system(rig, table, cfg, args, sweeps, noise=noise)[:2]
         x = _solvers.active_set(q_mat, q_vec, iters=iters, robust=True)
         return x, _solvers.kkt_residual(q_mat, q_vec, x)
 
-    n = t_us.shape[0]
-    phase = jnp.broadcast_to(jnp.asarray(phase, t_us.dtype), (n,))
-    return jax.lax.map(one, (t_us, polarity, mask, offsets, thr_on, thr_off, phase))
+    return jax.lax.map(one, px)
 
 
-def _augmented_gram(rig, table, cfg, t, p, mk, off, con, coff, phase, sweeps):
+def _augmented_gram(rig, table, cfg, px: PixelEvents, sweeps):
     """$\\hat N^T \\hat N$ of the event rows alone (the paper's SVD system)."""
     bare = dataclasses.replace(cfg, alpha_int=0.0, alpha_spec=0.0, ridge=0.0)
     q_mat, q_vec, _ = pixel_system(
-        rig, table, bare, t, p, mk, off, con, coff, phase, sweeps, return_gram=True
+        rig, table, bare, px, sweeps, return_gram=True
     )
     return q_mat
 
@@ -477,7 +457,7 @@ def reconstruct(
         pix = np.where(valid, b.pixel, 0)
         # Carried references: shift each pixel's clock to start at its reference.
         d = np.where(valid, lead[pix], 0.0)
-        args = (
+        px = PixelEvents(
             jnp.asarray(np.where(b.mask, b.t_us + d[:, None], 0.0), dtype),
             jnp.asarray(b.polarity, jnp.int32),
             jnp.asarray(b.mask),
@@ -486,7 +466,7 @@ def reconstruct(
             jnp.asarray(thr_off[pix], dtype),
             jnp.asarray(-d, dtype),
         )
-        x, kkt = solve(krig, table, cfg, spec, sub, *args, sweeps, noise_j)
+        x, kkt = solve(krig, table, cfg, spec, sub, px, sweeps, noise_j)
         x, kkt = np.asarray(x), np.asarray(kkt)
         failed = valid & ~np.all(np.isfinite(x), axis=1)
         if failed.any() and spec.name not in ("svd", "unconstrained"):
@@ -500,7 +480,7 @@ def reconstruct(
                 table,
                 cfg,
                 max(spec.iters, 48),
-                *(a[sel] for a in args),
+                jax.tree.map(lambda a: a[sel], px),
                 sweeps,
                 noise_j,
             )
@@ -625,14 +605,14 @@ def _check_map(a, h, w, name):
 # --- the chunk kernel on a device mesh ----------------------------------------------
 @functools.lru_cache(maxsize=64)
 def _solver_fn(mesh, cfg, spec, sub, sweeps, with_noise):
-    def local(rig, table, noise, *rows):
+    def local(rig, table, noise, px):
         noise = noise if with_noise else None
-        return _solve_chunk(rig, table, cfg, spec, sub, *rows, sweeps, noise)
+        return _solve_chunk(rig, table, cfg, spec, sub, px, sweeps, noise)
 
     mapped = jax.shard_map(
         local,
         mesh=mesh,
-        in_specs=(P(), P(), P()) + (P(_shard.PIXELS),) * 7,
+        in_specs=(P(), P(), P(), P(_shard.PIXELS)),
         out_specs=(P(_shard.PIXELS), P(_shard.PIXELS)),
         check_vma=False,
     )
@@ -646,37 +626,27 @@ def solve_chunk_sharded(
     cfg,
     spec,
     sub: int,
-    t_us,
-    polarity,
-    mask,
-    offsets,
-    thr_on,
-    thr_off,
-    phase,
+    px: PixelEvents,
     sweeps: int,
     noise=None,
 ):
     """The reconstruction's chunk kernel with its pixels split over `mesh`.
 
-    Same arguments and results as :func:`_solve_chunk` (host arrays
-    in, NumPy `(x, kkt)` out); the chunk's pixel count must be a multiple of
-    `mesh.size * sub`.
+    Same arguments and results as :func:`_solve_chunk` (NumPy `(x, kkt)` out); the
+    chunk's pixel count must be a multiple of `mesh.size * sub`.
     """
-    n = np.shape(t_us)[0]
+    n = np.shape(px.t_us)[0]
     if n % (_shard.mesh_size(mesh) * sub):
         raise ValueError(
             f"chunk of {n} pixels does not split into {_shard.mesh_size(mesh)}×{sub}"
         )
-    rows = [
-        _shard.to_global(mesh, np.asarray(a))
-        for a in (t_us, polarity, mask, offsets, thr_on, thr_off, phase)
-    ]
+    rows = jax.tree.map(lambda a: _shard.to_global(mesh, np.asarray(a)), px)
     fn = _solver_fn(mesh, cfg, spec, int(sub), int(sweeps), noise is not None)
     noise_arr = jnp.zeros(3, table.values.dtype) if noise is None else noise
     x, kkt = fn(
         _shard.replicated(mesh, rig),
         _shard.replicated(mesh, table),
         _shard.replicated(mesh, noise_arr),
-        *rows,
+        rows,
     )
     return _shard.to_host(x), _shard.to_host(kkt)

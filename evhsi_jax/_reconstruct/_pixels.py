@@ -11,11 +11,14 @@ from __future__ import annotations
 
 import dataclasses
 
+import equinox as eqx
+import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._events import EventStream
 
-__all__ = ["PixelBatch", "group_pixels", "bucket_sizes"]
+__all__ = ["PixelBatch", "PixelEvents", "group_pixels", "bucket_sizes"]
 
 MIN_BUCKET = 16
 TIMESTAMP_CENTRE_US = 0.5
@@ -55,6 +58,51 @@ class PixelBatch:
     @property
     def size(self) -> tuple[int, int]:
         return self.t_us.shape
+
+
+class PixelEvents(eqx.Module):
+    """What the per-pixel problem needs of a pixel besides the rig, on the device.
+
+    For one pixel `t_us`, `polarity`, `mask` have shape `(k,)` and the rest are
+    scalars; a batch adds leading axes (`jax.vmap`/`lax.map` over it, `jax.tree.map`
+    to cut or reshape it).
+
+    - `t_us`: event times relative to the recording start, µs (padded at the end).
+    - `polarity`: ±1 per event (0 in padding); `mask`: real events.
+    - `column_offset_us`: τx of the pixel's column.
+    - `threshold_on`, `threshold_off`: the pixel's thresholds (log units).
+    - `t0_phase_us`: the recording start modulo the sweep period.
+    """
+
+    t_us: Float[Array, "*n k"]
+    polarity: Int[Array, "*n k"]
+    mask: Bool[Array, "*n k"]
+    column_offset_us: Float[ArrayLike, "*n"]
+    threshold_on: Float[ArrayLike, "*n"]
+    threshold_off: Float[ArrayLike, "*n"]
+    t0_phase_us: Float[ArrayLike, "*n"]
+
+    @classmethod
+    def batch(
+        cls, t_us, polarity, mask, column_offset_us, threshold_on, threshold_off,
+        t0_phase_us=0.0,
+    ) -> PixelEvents:  # fmt: skip
+        """A batch of `n` pixels; scalar per-pixel values are broadcast to `(n,)`."""
+        t_us = jnp.asarray(t_us)
+        n = t_us.shape[0]
+
+        def per_pixel(v):
+            return jnp.broadcast_to(jnp.asarray(v, t_us.dtype), (n,))
+
+        return cls(
+            t_us,
+            jnp.asarray(polarity),
+            jnp.asarray(mask),
+            per_pixel(column_offset_us),
+            per_pixel(threshold_on),
+            per_pixel(threshold_off),
+            per_pixel(t0_phase_us),
+        )
 
 
 def group_pixels(

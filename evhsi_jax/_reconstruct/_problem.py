@@ -57,10 +57,11 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Bool, Float, Int
+from jaxtyping import Array, ArrayLike, Float
 
 from .._illumination import BandTable, lookup
 from .._rig import Rig
+from ._pixels import PixelEvents
 
 __all__ = [
     "ProblemConfig",
@@ -201,13 +202,7 @@ def pixel_system(
     rig: Rig,
     table: BandTable,
     cfg: ProblemConfig,
-    t_us: Float[Array, " k"],
-    polarity: Int[Array, " k"],
-    mask: Bool[Array, " k"],
-    column_offset_us: Float[ArrayLike, ""],
-    threshold_on: Float[ArrayLike, ""],
-    threshold_off: Float[ArrayLike, ""],
-    t0_phase_us: Float[ArrayLike, ""],
+    px: PixelEvents,
     sweeps: int,
     *,
     return_gram: bool = False,
@@ -223,12 +218,7 @@ def pixel_system(
     - `rig`, `table`: calibration; `table` is the channel table (`band_table(rig)
       .channels(sub)`).
     - `cfg`: a :class:`ProblemConfig`.
-    - `t_us`: event times relative to the recording start, µs, shape `(k,)` (padded at
-      the end; padding is ignored).
-    - `polarity`: ±1 per event (0 in padding); `mask`: real events.
-    - `column_offset_us`: τx of the pixel's column.
-    - `threshold_on`, `threshold_off`: the pixel's thresholds (log units).
-    - `t0_phase_us`: recording start modulo the sweep period.
+    - `px`: the pixel's events and constants (:class:`PixelEvents`, one pixel).
     - `sweeps`: number of sweeps the recording spans (static).
     - `return_gram`: return the augmented Gram matrix `(M+1, M+1)` (priors added to its
       x block) in place of Q.
@@ -259,8 +249,11 @@ def pixel_system(
     """
     dtype = table.values.dtype
     m = table.values.shape[1]
+    t_us, polarity, mask = px.t_us, px.polarity, px.mask
+    column_offset_us = px.column_offset_us
+    threshold_on, threshold_off = px.threshold_on, px.threshold_off
     k = t_us.shape[0]
-    t0_phase_us = jnp.asarray(t0_phase_us, dtype)
+    t0_phase_us = jnp.asarray(px.t0_phase_us, dtype)
     c1 = rig.baseline_level
     log_c1 = jnp.log(c1)
     eta = rig.refractory_us
