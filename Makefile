@@ -34,7 +34,7 @@ lint: $(STAMP)
 bench: $(STAMP)
 	$(PY) -m pytest -q -m slow $(PYTEST_ARGS)
 
-# The browser test of `evhsi view` (tests/test_viewer.py) needs Chromium and its
+# The browser test of `evhsi view` (tests/video/test_viewer.py) needs Chromium and its
 # WebDriver; it skips with a reason when they are absent. Debian/Ubuntu, as root:
 browser:
 	apt-get install -y chromium chromium-driver

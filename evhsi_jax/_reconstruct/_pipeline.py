@@ -362,7 +362,7 @@ def reconstruct(
       `chunk_pixels` per device, each with the same per-pixel kernel. A one-device
       mesh gives the plain run's cube bit for bit; on several CPU devices XLA compiles
       the kernel differently and the cube differs by float32 rounding (3e-5 on
-      reflectance ~0.5 in tests/test_shard.py; solved pixels and event counts equal).
+      reflectance ~0.5 in tests/reconstruction/test_shard.py; solved pixels and event counts equal).
       Several CPU devices solve one pixel per sub-batch (see
       `evhsi_jax._shard.sub_batch_for`).
 

@@ -24,7 +24,7 @@ def realistic_files(tmp_path_factory):
                      "--quiet", "--out", str(d / f"{name}.npz"), "--truth",
                      str(d / f"{name}_t.npz")]) == 0  # fmt: skip
     # (a known photoreceptor cut-off in --init would model the low-pass too, at twice
-    # the calibration time: tests/test_realism_fit.py checks that path, -m slow)
+    # the calibration time: tests/calibration/test_realism_fit.py checks that path, -m slow)
     (d / "init.json").write_text(json.dumps({"threshold_on": 0.15}))
     assert main(["calibrate", str(d / "gray.npz"), "--init", str(d / "init.json"),
                  "--out", str(d / "cal.json")]) == 0  # fmt: skip

@@ -22,7 +22,7 @@ from evhsi_jax._io import (
 )
 
 DATA = Path(
-    os.environ.get("EVHSI_SHARED_DATA", Path(__file__).parents[2] / "shared" / "data")
+    os.environ.get("EVHSI_SHARED_DATA", Path(__file__).parents[3] / "shared" / "data")
 )
 COLUMNS = ("x", "y", "p", "t_us", "trigger_t_us", "trigger_p", "trigger_id")
 

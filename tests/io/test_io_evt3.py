@@ -25,7 +25,7 @@ from evhsi_jax._io import (
 )
 
 DATA = Path(
-    os.environ.get("EVHSI_SHARED_DATA", Path(__file__).parents[2] / "shared" / "data")
+    os.environ.get("EVHSI_SHARED_DATA", Path(__file__).parents[3] / "shared" / "data")
 )
 SAMPLE = DATA / "evt3_sample.raw"
 needs_sample = pytest.mark.skipif(not SAMPLE.is_file(), reason="shared data absent")

@@ -18,7 +18,7 @@ import pytest
 import evhsi_jax as ev
 from evhsi_jax._viewer import CubeSource, make_server
 
-SCREENSHOTS = Path(__file__).resolve().parent / "output"
+SCREENSHOTS = Path(__file__).resolve().parents[1] / "output"
 
 
 @pytest.fixture(scope="module")

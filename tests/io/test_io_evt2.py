@@ -14,7 +14,7 @@ from evhsi_jax import EventStream
 from evhsi_jax._io import EventReader, describe_events, read_events
 
 DATA = Path(
-    os.environ.get("EVHSI_SHARED_DATA", Path(__file__).parents[2] / "shared" / "data")
+    os.environ.get("EVHSI_SHARED_DATA", Path(__file__).parents[3] / "shared" / "data")
 )
 SAMPLE = DATA / "evt2_sample.raw"
 HEADER = b"% evt 2.0\n% format EVT2;height=480;width=640\n% end\n"
