@@ -227,7 +227,7 @@ def chart_log_steps(rig: Rig, data, traces=None):
         raise ValueError("pass the spectral traces with device arrays")
     t, _, m, col, s_idx = data
     offsets = rig.column_offsets(_width(rig, col))[col][:, None]
-    c1 = rig.baseline_level
+    base = rig.baseline_level
     # References: the recording start for the first event, then τ_{k-1} + η.
     t_ref = jnp.concatenate(
         [jnp.zeros_like(t[:, :1]), t[:, :-1] + rig.refractory_us], axis=1
@@ -239,7 +239,7 @@ def chart_log_steps(rig: Rig, data, traces=None):
         a = lookup(
             traces, rig.band_centre_nm(tt, offsets), order=3, column=s_idx[:, None]
         )
-        return jnp.log(jnp.maximum(a, 0.0) + c1)
+        return jnp.log(jnp.maximum(a, 0.0) + base)
 
     hz = rig.effects.photoreceptor_hz
     if hz > 0:  # a known photoreceptor low-pass: the events see the filtered level
@@ -348,7 +348,7 @@ def _response_basis(rig: Rig, degree: int) -> np.ndarray:
 
 class _FitData(eqx.Module):
     """What the chart-fit residuals read besides the parameters (all arguments, no
-    closures: see `_calibrate64`)."""
+    closures: see `_fit_chart_float64`)."""
 
     rig: Rig
     basis: Any
@@ -538,8 +538,8 @@ def _background_rate(events, hot, rig, t_start_us) -> float:
         events.y.astype(np.int64) * w + events.x, np.flatnonzero(hot)
     ).sum())  # fmt: skip
     offs = np.asarray(rig.column_offsets(w), np.float64)
-    u_arr, u_lv = (np.asarray(v, np.float64) for v in lit_interval_us(rig, offs))
-    dark = float(np.mean(float(rig.period_us) - (u_lv - u_arr) - 400.0)) * sweeps
+    t_arrive, t_leave = (np.asarray(v, np.float64) for v in lit_interval_us(rig, offs))
+    dark = float(np.mean(float(rig.period_us) - (t_leave - t_arrive) - 400.0)) * sweeps
     n_pix = max(h * w - int(hot.sum()), 1)
     return max(n_out, 0) / (n_pix * max(dark, 1.0) * 1e-6)
 
@@ -561,10 +561,10 @@ def initial_guess(data: ChartData, rig: Rig) -> Rig:
     n_tab = traces.values.shape[0]
     lam = np.arange(traces.lo_nm, traces.lo_nm + traces.step_nm * (n_tab - 1), step_nm)
     a = np.asarray(lookup(traces, jnp.asarray(lam, traces.values.dtype)), np.float64)
-    c1 = float(rig.baseline_level)
+    base = float(rig.baseline_level)
     uniq = np.arange(data.spectra.shape[0])
     inv = data.spectrum
-    log_i = np.log(np.maximum(a, 0.0) + c1)  # (λ, S): λ plays the role of time
+    log_i = np.log(np.maximum(a, 0.0) + base)  # (λ, S): λ plays the role of time
     omega = float(rig.omega_rad_per_us)
     eta_nm = float(rig.refractory_us) * float(rig.beta_nm_per_rad) * omega
     dtype = rig.fwhm_nm.dtype
@@ -618,16 +618,16 @@ def calibrate(events: EventStream, chart: Scene, init: Rig, **kw) -> Calibration
     Always computed in float64 — event times of long captures and residuals of a few
     1e-4 in log units over 10⁵–10⁶ events are below float32 resolution, and the
     Levenberg–Marquardt stopping tests need it — and returned in `init`'s dtype. See
-    :func:`_calibrate64` for the arguments.
+    :func:`_fit_chart_float64` for the arguments.
     """
     dtype = init.fwhm_nm.dtype
     with jax.enable_x64(True):
-        res = _calibrate64(events, chart, init.astype(jnp.float64), **kw)
+        res = _fit_chart_float64(events, chart, init.astype(jnp.float64), **kw)
         rig = res.rig.astype(dtype)
     return dataclasses.replace(res, rig=rig)
 
 
-def _calibrate64(
+def _fit_chart_float64(
     events: EventStream,
     chart: Scene,
     init: Rig,

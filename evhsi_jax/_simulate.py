@@ -159,7 +159,7 @@ def _log_intensity(
     return log_i
 
 
-def _scan(rig, log_i, t_local, thr_on, thr_off, state, ref_noise=None):
+def _trigger_scan(rig, log_i, t_local, thr_on, thr_off, state, ref_noise=None):
     if state is None:
         state = initial_state(log_i[0])
     return exact_events_scan(
@@ -175,17 +175,17 @@ def _scan(rig, log_i, t_local, thr_on, thr_off, state, ref_noise=None):
 
 
 _log_intensity_jit = eqx.filter_jit(_log_intensity)
-_scan_jit = eqx.filter_jit(_scan)
+_trigger_scan_jit = eqx.filter_jit(_trigger_scan)
 
 
 @eqx.filter_jit
-def _fused(
+def _intensity_and_trigger(
     rig, table_values, lo_nm, t_local, offsets, spectra, labels, lowpass_hz, *scan_args
 ):
     log_i = _log_intensity(
         rig, table_values, lo_nm, t_local, offsets, spectra, labels, lowpass_hz
     )
-    return _scan(rig, log_i, t_local, *scan_args)
+    return _trigger_scan(rig, log_i, t_local, *scan_args)
 
 
 def _chunk_kernel(
@@ -213,9 +213,9 @@ def _chunk_kernel(
         log_i = _log_intensity_jit(
             rig, table_values, lo_nm, t_local, offsets, spectra, labels, lowpass_hz
         )
-        out, state = _scan_jit(rig, log_i, t_local, thr_on, thr_off, state, ref_noise)
+        out, state = _trigger_scan_jit(rig, log_i, t_local, thr_on, thr_off, state, ref_noise)
     else:
-        out, state = _fused(
+        out, state = _intensity_and_trigger(
             rig,
             table_values,
             lo_nm,
@@ -302,8 +302,8 @@ def simulate(
         )
     kernel_rig = rig.without_host_settings()
 
-    os_ = time_oversampling(rig)
-    n = rig.samples_per_sweep * os_
+    oversample = time_oversampling(rig)
+    n = rig.samples_per_sweep * oversample
     period = float(rig.period_us)
     dt = period / n
     fine = band_table(rig)
@@ -522,7 +522,7 @@ def _log_intensity_fn(mesh, palette: bool, lo_nm: float):
 def _scan_fn(mesh, fresh: bool):
     def local(rig, log_i, t_local, thr_on, thr_off, state):
         state = None if fresh else jax.tree.map(lambda a: a[0], state)
-        out, state = _scan(rig, log_i[0], t_local[0], thr_on[0], thr_off[0], state)
+        out, state = _trigger_scan(rig, log_i[0], t_local[0], thr_on[0], thr_off[0], state)
         return jax.tree.map(lambda a: a[None], (*out, state))
 
     rows = P(_shard.PIXELS)

@@ -378,7 +378,7 @@ def _remove_stale_temporaries(folder: Path) -> int:
     return n
 
 
-def _flag(entries: list[dict], rel: float, period: float) -> float:
+def _mark_sweep_quality(entries: list[dict], rel: float, period: float) -> float:
     """Set `events_rel`, `low_events`, `irregular` on every entry; return the median."""
     if not entries:
         return 0.0
@@ -773,7 +773,7 @@ def reconstruct_sweeps(
             if not force and now - last_write[0] < index_interval_s:
                 return
             entries = [done[k] for k in sorted(done)]
-            index["median_events"] = _flag(entries, low_event_rel, period)
+            index["median_events"] = _mark_sweep_quality(entries, low_event_rel, period)
             index["sweeps"] = entries
             if video is not None:
                 video.set_index(index)

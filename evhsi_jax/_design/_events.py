@@ -169,7 +169,7 @@ def pixel_qp(
     dtype = log_col.dtype
     k_slots = step.shape[0]
     n1 = lam.shape[0]
-    c1 = rig.baseline_level
+    base = rig.baseline_level
     speed = rig.band_speed_nm_per_us
     eta = rig.refractory_us
     thr = 0.5 * (rig.threshold_on + rig.threshold_off)
@@ -180,7 +180,7 @@ def pixel_qp(
 
     def level(t):
         a = lookup(trace, centre(t), order=3)[..., 0]
-        return jnp.log(jnp.maximum(a, 0.0) + c1)
+        return jnp.log(jnp.maximum(a, 0.0) + base)
 
     # --- event times by the implicit function theorem ------------------------------
     tau = sg(t_cross - offset_us)
@@ -271,7 +271,7 @@ def pixel_qp(
         a_from = lookup(channel_table, centre(t_from), order=cfg.lookup_order)
         ratio = jnp.exp(l_at - l_from)
         n = jnp.concatenate(
-            [a_at - ratio[:, None] * a_from, (c1 * (1.0 - ratio))[:, None]], axis=1
+            [a_at - ratio[:, None] * a_from, (base * (1.0 - ratio))[:, None]], axis=1
         )
         return n * jnp.exp(-l_at)[:, None]  # relative residuals, as the event rows
 

@@ -155,8 +155,8 @@ def select_sweeps(
 def _no_event_answer(rig: Rig, m: int) -> float:
     """Reflectance for a pixel without events: half the largest flat reflectance that
     stays below the ON threshold (a white-normalised peak of ρ gives ρ)."""
-    c1 = float(rig.baseline_level)
-    return 0.5 * c1 * math.expm1(float(rig.threshold_on))
+    base = float(rig.baseline_level)
+    return 0.5 * base * math.expm1(float(rig.threshold_on))
 
 
 @eqx.filter_jit
@@ -539,7 +539,7 @@ def screen_events(
         return events, hot.reshape(h, w), 0
     period = float(rig.period_us)
     offs = np.asarray(rig.column_offsets(w), np.float64)
-    u_arr, u_lv = (np.asarray(v, np.float64) for v in lit_interval_us(rig, offs))
+    t_arrive, t_leave = (np.asarray(v, np.float64) for v in lit_interval_us(rig, offs))
     sig_t = 0.0 if noise is None else float(noise[1])
     d_base = 0.0 if noise is None else float(noise[2]) / float(rig.baseline_rel + 1e-3)
     margin = 200.0 + 5.0 * sig_t + min(3.0 * d_base, 5000.0)
@@ -547,7 +547,7 @@ def screen_events(
         margin = max(margin, float(margin_us))
     x = events.x.astype(np.int64)
     local = np.mod(events.t_us.astype(np.float64) - t_start_us, period)
-    lo, hi = u_arr[x] - margin, u_lv[x] + margin
+    lo, hi = t_arrive[x] - margin, t_leave[x] + margin
     # The interval may wrap around the period (local times are taken modulo P).
     inside = (
         ((local >= lo) & (local <= hi))

@@ -193,9 +193,9 @@ def lit_interval_us(rig: Rig, column_offset_us):
     speed = rig.band_speed_nm_per_us
     lo = rig.grid.start_nm - 2.0 * rig.fwhm_nm
     hi = rig.grid.stop_nm + 2.0 * rig.fwhm_nm
-    u_arr = (lo - rig.sweep_start_nm) / speed - column_offset_us
-    u_lv = (hi - rig.sweep_start_nm) / speed - column_offset_us
-    return u_arr, u_lv
+    t_arrive = (lo - rig.sweep_start_nm) / speed - column_offset_us
+    t_leave = (hi - rig.sweep_start_nm) / speed - column_offset_us
+    return t_arrive, t_leave
 
 
 def pixel_system(
@@ -254,8 +254,8 @@ def pixel_system(
     threshold_on, threshold_off = px.threshold_on, px.threshold_off
     k = t_us.shape[0]
     t0_phase_us = jnp.asarray(px.t0_phase_us, dtype)
-    c1 = rig.baseline_level
-    log_c1 = jnp.log(c1)
+    base = rig.baseline_level
+    log_base = jnp.log(base)
     eta = rig.refractory_us
     period = rig.period_us
     sgn = polarity.astype(dtype)
@@ -269,7 +269,7 @@ def pixel_system(
             table, rig.band_centre_nm(local, column_offset_us), order=cfg.lookup_order
         )
 
-    u_arr, u_lv = lit_interval_us(rig, column_offset_us)
+    t_arrive, t_leave = lit_interval_us(rig, column_offset_us)
     sweep_of = jnp.floor((t_us + t0_phase_us) / period)
     new_sweep = jnp.concatenate([jnp.array([True]), sweep_of[1:] != sweep_of[:-1]])
     prev_sgn = jnp.concatenate([jnp.zeros((1,), dtype), sgn[:-1]])
@@ -278,7 +278,7 @@ def pixel_system(
         noise = jnp.asarray(noise, dtype)
         # Photoreceptor lag: each event fired when the low-passed level crossed, about
         # one time constant d_w / I after the level itself did. I from the events.
-        lvl0 = log_c1 + _sweep_cumsum(step, new_sweep, k)
+        lvl0 = log_base + _sweep_cumsum(step, new_sweep, k)
         delay = jnp.minimum(noise[2] * jnp.exp(-lvl0), 5000.0)
         t_us = jnp.where(mask, t_us - delay, t_us)
         t_us = jax.lax.cummax(jnp.where(mask, t_us, -jnp.inf))
@@ -300,10 +300,10 @@ def pixel_system(
         step * jnp.minimum(eta / gap, 3.0),
         0.0,
     )
-    level = log_c1 + _sweep_cumsum(step + drift, new_sweep, k)
+    level = log_base + _sweep_cumsum(step + drift, new_sweep, k)
     drift_next = jnp.concatenate([drift[1:], jnp.zeros((1,), dtype)])
     i_hat = jnp.exp(level)
-    s_hat = jnp.maximum(jnp.max(jnp.where(mask, i_hat, c1)) - c1, 1e-3 * c1)
+    s_hat = jnp.maximum(jnp.max(jnp.where(mask, i_hat, base)) - base, 1e-3 * base)
 
     norm = cfg.normalise
     w_ev = jnp.where(mask, 1.0 / i_hat if norm else 1.0, 0.0)
@@ -322,7 +322,7 @@ def pixel_system(
         noisy = jnp.sum(jnp.where(mask, var / (ideal + var), 0.0)) / n_ev
     ev_rows = (
         jnp.concatenate(
-            [a_ev - ratio[:, None] * a_ref, (c1 * (1.0 - ratio))[:, None]], axis=1
+            [a_ev - ratio[:, None] * a_ref, (base * (1.0 - ratio))[:, None]], axis=1
         )
         * w_ev[:, None]
     )
@@ -345,14 +345,14 @@ def pixel_system(
     tau0 = rig.grid.width_nm / speed  # µs for the band to move one channel
     g = cfg.int_points
     sw = jnp.arange(sweeps, dtype=dtype)
-    t_arr_s = sw * period - t0_phase_us + u_arr
-    t_lv_s = sw * period - t0_phase_us + u_lv
-    spacing = (u_lv - u_arr) / g
+    t_arrive_s = sw * period - t0_phase_us + t_arrive
+    t_leave_s = sw * period - t0_phase_us + t_leave
+    spacing = (t_leave - t_arrive) / g
     frac = (jnp.arange(g, dtype=dtype) + 0.5) / g
-    t_g = (t_arr_s[:, None] + frac[None, :] * (u_lv - u_arr)).reshape(-1)  # (s*g,)
+    t_g = (t_arrive_s[:, None] + frac[None, :] * (t_leave - t_arrive)).reshape(-1)  # (s*g,)
     sw_g = jnp.repeat(sw, g)
-    t_arr_g = jnp.repeat(t_arr_s, g)
-    t_lv_g = jnp.repeat(t_lv_s, g)
+    t_arrive_g = jnp.repeat(t_arrive_s, g)
+    t_leave_g = jnp.repeat(t_leave_s, g)
     t_sorted = jnp.where(mask, t_us, jnp.inf)
     nxt = jnp.searchsorted(t_sorted, t_g, side="right", method="compare_all")
     has_next = nxt < jnp.sum(mask).astype(nxt.dtype)
@@ -363,13 +363,13 @@ def pixel_system(
     # leaves. End A: the release after the previous event if it happened in this
     # sweep's lit interval, else the baseline when the band arrives.
     b_event = has_next & (sweep_of[nxt_c] == sw_g)
-    b_time = jnp.where(b_event, t_us[nxt_c], t_lv_g)
-    a_event = (prv >= 0) & (t_rel[prv + 1] >= t_arr_g) & (sweep_of[prv_c] == sw_g)
-    a_time = jnp.where(a_event, t_rel[prv + 1], t_arr_g)
+    b_time = jnp.where(b_event, t_us[nxt_c], t_leave_g)
+    a_event = (prv >= 0) & (t_rel[prv + 1] >= t_arrive_g) & (sweep_of[prv_c] == sw_g)
+    a_time = jnp.where(a_event, t_rel[prv + 1], t_arrive_g)
     a_vec_a = jnp.where(a_event[:, None], a_rel[prv + 1], 0.0)
     a_vec_b = jnp.where(b_event[:, None], a_ev[nxt_c], 0.0)
-    i_a = jnp.where(a_event, i_hat[prv_c] * jnp.exp(drift_next[prv_c]), c1)
-    i_b = jnp.where(b_event, i_hat[nxt_c], c1)
+    i_a = jnp.where(a_event, i_hat[prv_c] * jnp.exp(drift_next[prv_c]), base)
+    i_b = jnp.where(b_event, i_hat[nxt_c], base)
     span = jnp.maximum(b_time - a_time, 1.0)
     sg = jnp.clip((t_g - a_time) / span, 0.0, 1.0)
     flip = a_event & b_event & (sgn[prv_c] * sgn[nxt_c] < 0)
@@ -397,13 +397,13 @@ def pixel_system(
             - (wb_f * f_g / f_b)[:, None] * a_vec_b
         )
         int_c = jnp.zeros_like(sg)
-        i_tgt = c1 + f_g * (wa_f * (i_a - c1) / f_a + wb_f * (i_b - c1) / f_b)
-        i_tgt = jnp.maximum(i_tgt, c1)
+        i_tgt = base + f_g * (wa_f * (i_a - base) / f_a + wb_f * (i_b - base) / f_b)
+        i_tgt = jnp.maximum(i_tgt, base)
     else:
         wa = 1.0 - sg + bump
         int_x = a_g - wa[:, None] * a_vec_a - sg[:, None] * a_vec_b
-        int_c = -c1 * bump
-        i_tgt = jnp.maximum(wa * i_a + sg * i_b, 1e-3 * c1)
+        int_c = -base * bump
+        i_tgt = jnp.maximum(wa * i_a + sg * i_b, 1e-3 * base)
     w_int = jnp.sqrt(cfg.alpha_int * spacing / tau0) * jnp.ones_like(sg)
     if norm:
         w_int = w_int / i_tgt
