@@ -67,7 +67,7 @@ from tqdm.auto import tqdm
 from ._calibration import Calibration
 from ._cubefile import load_cube, save_cube
 from ._events import EventStream, check_roi
-from ._io import DEFAULT_CHUNK_BYTES, EventReader
+from ._io import DEFAULT_CHUNK_BYTES, EventReader, SweepCutter
 from ._reconstruct import (
     TIMESTAMP_CENTRE_US,
     ProblemConfig,
@@ -126,127 +126,6 @@ class StreamResult:
     solve_seconds: float
     stale_removed: int = 0
     decode: dict | None = None
-
-
-# --- sweep assembly -----------------------------------------------------------------
-class _SweepCutter:
-    """Cuts a chunked, time-ordered event stream into sweeps with bounded memory.
-
-    Sweep starts come from encoder triggers (id `trigger_id`, rising edge; see
-    `split_sweeps`) or, without any in the first few periods, at `phase_us + j
-    period_us` (the band's own sweep starts, as `reconstruct`'s `t_start_us`: the
-    reconstruction needs each sweep's time origin, not just a cut in the dead time).
-    Yields `(k, start, stop, events, before)`:
-    `events` holds the sweep's events, `before` the events that precede the first
-    sweep (they set pixel references, nothing else).
-    """
-
-    def __init__(self, chunks, period_us, triggers, phase_us, trigger_id=0):
-        self.chunks = iter(chunks)
-        self.period = float(period_us)
-        self.mode = triggers
-        self.phase = phase_us
-        self.trigger_id = trigger_id
-        self.pending: list[EventStream] = []
-        self.marks: list[int] = []
-        self.t_max = -(2**62)
-        self.exhausted = False
-        self.geometry = None
-
-    def _pull(self) -> bool:
-        try:
-            c = next(self.chunks)
-        except StopIteration:
-            self.exhausted = True
-            return False
-        self.geometry = (c.width, c.height)
-        sel = (c.trigger_id == self.trigger_id) & (c.trigger_p == 1)
-        for m in c.trigger_t_us[sel].tolist():
-            if not self.marks or m > self.marks[-1]:
-                self.marks.append(int(m))
-        if len(c):
-            self.pending.append(c)
-            self.t_max = max(self.t_max, int(c.t_us[-1]))
-        return True
-
-    def _take(self, t0: int, t1: int) -> EventStream:
-        """Events in `[t0, t1)`; everything before `t1` leaves the buffer."""
-        w, h = self.geometry
-        if not self.pending:
-            return EventStream(*(np.zeros(0, np.int64),) * 4, w, h)
-        cat = EventStream.concatenate(self.pending) if len(self.pending) > 1 else None
-        cat = cat or self.pending[0]
-        out = cat.time_window(t0, t1)
-        rest = cat.time_window(t1, 2**62)
-        self.pending = [rest] if len(rest) else []
-        return out
-
-    def _decide(self):
-        """Trigger or period mode, from the first ~4 periods of data."""
-        while not self.exhausted and (
-            not self.pending
-            or self.t_max - int(self.pending[0].t_us[0]) < 4 * self.period
-        ):
-            self._pull()
-        use_trig = self.mode != "ignore" and len(self.marks) >= 1
-        if self.mode == "require" and not use_trig:
-            raise ValueError(
-                f"no sweep triggers (id {self.trigger_id}, rising edge) in the first "
-                "periods of the recording"
-            )
-        self.mode = "trigger" if use_trig else "period"
-        if self.mode == "period" and self.phase is None:
-            self.phase = 0.0
-
-    def __iter__(self):
-        self._decide()
-        if self.geometry is None:
-            return
-        if self.mode == "trigger":
-            yield from self._by_trigger()
-        else:
-            yield from self._by_period()
-
-    def _by_trigger(self):
-        first = self.marks[0]
-        before = self._take(-(2**62), first)
-        k = 0
-        while True:
-            while len(self.marks) < k + 2 and not self.exhausted:
-                self._pull()
-            if len(self.marks) >= k + 2:
-                start, stop = self.marks[k], self.marks[k + 1]
-                while self.t_max < stop and not self.exhausted:
-                    self._pull()
-            else:  # the last sweep: one median interval (or period) long
-                start = self.marks[k]
-                gaps = np.diff(self.marks)
-                stop = start + int(round(np.median(gaps) if gaps.size else self.period))
-                while not self.exhausted:
-                    self._pull()
-            yield k, start, stop, self._take(start, stop), before
-            before = None
-            k += 1
-            if len(self.marks) < k + 1:
-                return
-
-    def _by_period(self):
-        if not self.pending:
-            return
-        t0 = int(self.pending[0].t_us[0])
-        j0 = math.floor((t0 - self.phase) / self.period)
-        cut = lambda j: int(round(self.phase + j * self.period))  # noqa: E731
-        if cut(j0) > t0:
-            j0 -= 1
-        k = 0
-        while True:
-            start, stop = cut(j0 + k), cut(j0 + k + 1)
-            while self.t_max < stop and not self.exhausted:
-                self._pull()
-            if not self.pending and self.exhausted:
-                return
-            yield k, start, stop, self._take(start, stop), None
-            k += 1
 
 
 # --- index --------------------------------------------------------------------------
@@ -707,7 +586,7 @@ def reconstruct_sweeps(
     period = float(period_us) if period_us else float(rig.period_us)
     eta = float(rig.refractory_us)
 
-    cutter = _SweepCutter(chunks, period, triggers, phase_us)
+    cutter = SweepCutter(chunks, period, triggers, phase_us)
     sweeps_iter = iter(cutter)
     try:
         first = next(sweeps_iter)

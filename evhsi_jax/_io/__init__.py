@@ -28,6 +28,7 @@ from ._reader import read_events as read_events
 from ._reader import read_events_window as read_events_window
 from ._report import DecodeError as DecodeError
 from ._report import DecodeReport as DecodeReport
+from ._sweeps import SweepCutter as SweepCutter
 from ._sweeps import Sweeps as Sweeps
 from ._sweeps import estimate_sweep_phase as estimate_sweep_phase
 from ._sweeps import split_sweeps as split_sweeps

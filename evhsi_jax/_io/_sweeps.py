@@ -18,13 +18,33 @@ band is off the scene — so no sweep is cut through its middle. Cuts are then a
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Iterator
 
 import numpy as np
 
 from .._events import EventStream
 
-__all__ = ["Sweeps", "split_sweeps", "estimate_sweep_phase"]
+__all__ = ["Sweeps", "SweepCutter", "split_sweeps", "estimate_sweep_phase"]
+
+
+def _trigger_marks(events: EventStream, trigger_id: int, trigger_p: int = 1):
+    """Sweep-start marks: the times of the stream's triggers on channel `trigger_id`
+    with edge `trigger_p`, as they come (sorted for a time-ordered stream)."""
+    sel = (events.trigger_id == trigger_id) & (events.trigger_p == trigger_p)
+    return events.trigger_t_us[sel]
+
+
+def _last_stop(marks: np.ndarray, period) -> int:
+    """Where the last trigger-started sweep ends: one median trigger interval (or one
+    `period` with a single trigger) after its start."""
+    gaps = np.diff(marks)
+    return int(marks[-1]) + int(round(float(np.median(gaps)) if gaps.size else period))
+
+
+def _period_cut(phase_us, period_us, j):
+    """The `j`-th cut of the period path, `phase + j·period` rounded to µs."""
+    return np.round(phase_us + period_us * np.asarray(j)).astype(np.int64)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -158,8 +178,7 @@ def split_sweeps(
         raise ValueError(f"period_us must be positive, got {period_us}")
     if not events.is_time_ordered():
         raise ValueError("split_sweeps needs a time-ordered stream")
-    sel = (events.trigger_id == trigger_id) & (events.trigger_p == trigger_p)
-    marks = np.unique(events.trigger_t_us[sel])
+    marks = np.unique(_trigger_marks(events, trigger_id, trigger_p))
     usable = marks.size >= 2 or (marks.size == 1 and period_us is not None)
     if triggers == "require" and not usable:
         raise ValueError(
@@ -170,7 +189,7 @@ def split_sweeps(
         period = (
             float(np.median(np.diff(marks))) if marks.size >= 2 else float(period_us)
         )
-        stops = np.append(marks[1:], marks[-1] + int(round(period)))
+        stops = np.append(marks[1:], _last_stop(marks, period))
         return Sweeps(
             start_us=marks.astype(np.int64),
             stop_us=stops.astype(np.int64),
@@ -192,7 +211,7 @@ def split_sweeps(
         return Sweeps(empty, empty, "period", period, float(phase_us), events)
     k0 = int(np.floor((int(t[0]) - phase_us) / period))
     k1 = int(np.floor((int(t[-1]) - phase_us) / period))
-    cuts = np.round(phase_us + period * np.arange(k0, k1 + 2)).astype(np.int64)
+    cuts = _period_cut(phase_us, period, np.arange(k0, k1 + 2))
     # Rounding may put an event just outside the first/last cut: widen by one period.
     if cuts[0] > t[0]:
         cuts = np.concatenate([[cuts[0] - int(round(period))], cuts])
@@ -206,3 +225,127 @@ def split_sweeps(
         phase_us=float(np.mod(phase_us, period)),
         events=events,
     )
+
+
+class SweepCutter:
+    """Cuts a chunked, time-ordered event stream into sweeps with bounded memory: the
+    streaming form of :func:`split_sweeps`, with the same boundary rules
+    (:func:`_trigger_marks`, :func:`_last_stop`, :func:`_period_cut`).
+
+    Sweep starts come from encoder triggers (id `trigger_id`, rising edge) or, without
+    any in the first few periods, at `phase_us + j period_us` (the band's own sweep
+    starts, as `reconstruct`'s `t_start_us`: the reconstruction needs each sweep's
+    time origin, not just a cut in the dead time; `phase_us=None` is 0 here, where
+    `split_sweeps` estimates a cut in the dead time).
+    Yields `(k, start, stop, events, before)`:
+    `events` holds the sweep's events, `before` the events that precede the first
+    sweep (they set pixel references, nothing else).
+    """
+
+    def __init__(self, chunks, period_us, triggers, phase_us, trigger_id=0):
+        self.chunks = iter(chunks)
+        self.period = float(period_us)
+        self.mode = triggers
+        self.phase = phase_us
+        self.trigger_id = trigger_id
+        self.pending: list[EventStream] = []
+        self.marks: list[int] = []
+        self.t_max = -(2**62)
+        self.exhausted = False
+        self.geometry = None
+
+    def _pull(self) -> bool:
+        try:
+            c = next(self.chunks)
+        except StopIteration:
+            self.exhausted = True
+            return False
+        self.geometry = (c.width, c.height)
+        for m in _trigger_marks(c, self.trigger_id).tolist():
+            if not self.marks or m > self.marks[-1]:
+                self.marks.append(int(m))
+        if len(c):
+            self.pending.append(c)
+            self.t_max = max(self.t_max, int(c.t_us[-1]))
+        return True
+
+    def _take(self, t0: int, t1: int) -> EventStream:
+        """Events in `[t0, t1)`; everything before `t1` leaves the buffer."""
+        w, h = self.geometry
+        if not self.pending:
+            return EventStream(*(np.zeros(0, np.int64),) * 4, w, h)
+        cat = EventStream.concatenate(self.pending) if len(self.pending) > 1 else None
+        cat = cat or self.pending[0]
+        out = cat.time_window(t0, t1)
+        rest = cat.time_window(t1, 2**62)
+        self.pending = [rest] if len(rest) else []
+        return out
+
+    def _decide(self):
+        """Trigger or period mode, from the first ~4 periods of data."""
+        while not self.exhausted and (
+            not self.pending
+            or self.t_max - int(self.pending[0].t_us[0]) < 4 * self.period
+        ):
+            self._pull()
+        use_trig = self.mode != "ignore" and len(self.marks) >= 1
+        if self.mode == "require" and not use_trig:
+            raise ValueError(
+                f"no sweep triggers (id {self.trigger_id}, rising edge) in the first "
+                "periods of the recording"
+            )
+        self.mode = "trigger" if use_trig else "period"
+        if self.mode == "period" and self.phase is None:
+            self.phase = 0.0
+
+    def __iter__(self):
+        self._decide()
+        if self.geometry is None:
+            return
+        if self.mode == "trigger":
+            yield from self._by_trigger()
+        else:
+            yield from self._by_period()
+
+    def _by_trigger(self):
+        first = self.marks[0]
+        before = self._take(-(2**62), first)
+        k = 0
+        while True:
+            while len(self.marks) < k + 2 and not self.exhausted:
+                self._pull()
+            if len(self.marks) >= k + 2:
+                start, stop = self.marks[k], self.marks[k + 1]
+                while self.t_max < stop and not self.exhausted:
+                    self._pull()
+            else:  # the last sweep: one median interval (or period) long
+                start = self.marks[k]
+                stop = _last_stop(np.asarray(self.marks), self.period)
+                while not self.exhausted:
+                    self._pull()
+            yield k, start, stop, self._take(start, stop), before
+            before = None
+            k += 1
+            if len(self.marks) < k + 1:
+                return
+
+    def _by_period(self):
+        if not self.pending:
+            return
+        t0 = int(self.pending[0].t_us[0])
+        j0 = math.floor((t0 - self.phase) / self.period)
+
+        def cut(j):
+            return int(_period_cut(self.phase, self.period, j))
+
+        if cut(j0) > t0:
+            j0 -= 1
+        k = 0
+        while True:
+            start, stop = cut(j0 + k), cut(j0 + k + 1)
+            while self.t_max < stop and not self.exhausted:
+                self._pull()
+            if not self.pending and self.exhausted:
+                return
+            yield k, start, stop, self._take(start, stop), None
+            k += 1
