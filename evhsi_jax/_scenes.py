@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ._reference_spectra import reference_spectra
 from ._spectra import SpectralGrid, band_integrate
 from ._storage import atomic_write, read_npz
 
@@ -186,13 +187,9 @@ def _grid_labels(h, w, rows, cols):
 
 @functools.lru_cache(maxsize=1)
 def _colorchecker():
-    import colour
-
-    sds = colour.SDS_COLOURCHECKERS["ColorChecker N Ohta"]
-    names = list(sds.keys())
-    wl = np.asarray(sds[names[0]].wavelengths, np.float64)
-    pal = np.stack([np.asarray(sds[k].values, np.float64) for k in names])
-    return names, wl, pal
+    ref = reference_spectra()  # colour-science's "ColorChecker N Ohta"
+    names = [str(n) for n in ref["colorchecker_names"]]
+    return names, ref["colorchecker_wavelengths_nm"], ref["colorchecker_values"]
 
 
 def colorchecker(size=None) -> Scene:

@@ -14,10 +14,11 @@ NumPy: they run once, outside any differentiated path.
 
 from __future__ import annotations
 
-import functools
 import math
 
 import numpy as np
+
+from ._reference_spectra import reference_spectra
 
 __all__ = [
     "SpectralGrid",
@@ -207,19 +208,17 @@ def default_camera_response(wavelengths_nm) -> np.ndarray:
     return np.exp(-0.5 * ((wl - 600.0) / 160.0) ** 2)
 
 
-@functools.lru_cache(maxsize=1)
 def _kinoton():
-    import colour
-
-    sd = colour.SDS_LIGHT_SOURCES["Kinoton 75P"]
-    return np.asarray(sd.wavelengths, np.float64), np.asarray(sd.values, np.float64)
+    ref = reference_spectra()
+    return ref["lamp_wavelengths_nm"], ref["lamp_values"]
 
 
 def default_lamp_spectrum(wavelengths_nm) -> np.ndarray:
     """A xenon-arc lamp spectrum E(λ), normalised to peak 1 on the given wavelengths.
 
     The Kinoton 75P xenon cinema projector lamp shipped with colour-science (380–780 nm,
-    2 nm), linearly interpolated.
+    2 nm; stored with the package, :mod:`evhsi_jax._reference_spectra`), linearly
+    interpolated.
     """
     wl, v = _kinoton()
     out = resample(wl, v, wavelengths_nm, name="lamp spectrum")

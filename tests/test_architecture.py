@@ -16,7 +16,13 @@ ROOT = Path(__file__).resolve().parents[1] / "evhsi_jax"
 
 # Stages in data-flow order: a module may import its own stage or an earlier one.
 STAGES = [
-    ("base", {"_storage", "_limits", "_cache", "_spectra", "_metrics", "_shard"}),
+    (
+        "base",
+        {
+            "_storage", "_limits", "_cache", "_spectra", "_reference_spectra",
+            "_metrics", "_shard",
+        },
+    ),  # fmt: skip
     (
         "model",
         {

@@ -189,3 +189,14 @@ def test_default_lamp_is_kinoton_peak_one():
     sd = colour.SDS_LIGHT_SOURCES["Kinoton 75P"]
     ref = np.interp(wl, sd.wavelengths, sd.values)
     np.testing.assert_allclose(e, ref / ref.max(), rtol=1e-12)
+
+
+def test_stored_reference_spectra_equal_colour_science():
+    """The lamp and ColorChecker spectra kept as package data (so that a `Rig()` does
+    not import colour-science, ~2 s) are colour-science's own values."""
+    from evhsi_jax._reference_spectra import from_colour, reference_spectra
+
+    stored, live = reference_spectra(), from_colour()
+    assert stored.keys() == live.keys()
+    for k in live:
+        np.testing.assert_array_equal(stored[k], live[k], err_msg=k)
