@@ -979,6 +979,8 @@ def threshold_maps_from_chart(
         if best is None or ssr < best[0]:
             best = (ssr, float(sigma), c_on, c_off, rms_px)
     _, psf, c_on, c_off, rms_px = best
+    d = _seen_through(data, chart.blurred(psf), rig)
+    c_on, c_off, rms_px = _refit_without_stray_events(rig, d, c_on, c_off, rms_px)
     med = np.nanmedian(rms_px)
     mad = np.nanmedian(np.abs(rms_px - med))
     misfit = rms_px > max(2.0 * med, med + 8.0 * 1.4826 * mad, 0.02)
@@ -988,6 +990,43 @@ def threshold_maps_from_chart(
     off[data.pixel[good_off]] = c_off[good_off]
     maps = on.reshape(h, w), off.reshape(h, w)
     return (*maps, psf) if return_psf else maps
+
+
+def _refit_without_stray_events(rig: Rig, d: ChartData, c_on, c_off, rms_px):
+    """Closed-form thresholds again for pixels with a stray event — one whose residual
+    with the pixel's own thresholds is beyond max(0.5, 6 robust σ) thresholds: a
+    background event inside the lit interval, or a crossing the model misses — with
+    that event removed from the pixel's list (so the next event refers to the one
+    before it). One noise event would otherwise cost the whole pixel its own
+    thresholds (it would fail the misfit test); with a gray chart recorded for many
+    sweeps most pixels catch one."""
+    steps = _log_steps(rig, d)
+    c_px = np.where(d.polarity > 0, c_on[:, None], c_off[:, None])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = np.where(d.mask, steps / c_px - d.polarity, 0.0)
+    r = np.nan_to_num(r, nan=np.inf)
+    sigma = 1.4826 * float(np.median(np.abs(r[d.mask]))) if d.mask.any() else 0.0
+    stray = d.mask & (np.abs(r) > max(0.5, 6.0 * sigma))
+    rows = np.flatnonzero(stray.any(axis=1) & (d.mask.sum(axis=1) > stray.sum(axis=1)))
+    if rows.size == 0:
+        return c_on, c_off, rms_px
+    sub = d.subset(rows)
+    keep = sub.mask & ~stray[rows]
+    # Compact each row's remaining events to the front (padding stays at the end).
+    order = np.argsort(~keep, axis=1, kind="stable")
+    take = lambda a: np.take_along_axis(a, order, axis=1)  # noqa: E731
+    sub = dataclasses.replace(
+        sub,
+        t_us=take(np.where(keep, sub.t_us, 0)),
+        polarity=take(np.where(keep, sub.polarity, 0)),
+        mask=take(keep),
+    )
+    steps2 = _log_steps(rig, sub)
+    on2, off2 = _closed_form_thresholds(steps2, sub)
+    rms2 = _rms_own_thresholds(steps2, sub, on2, off2)
+    c_on, c_off, rms_px = c_on.copy(), c_off.copy(), rms_px.copy()
+    c_on[rows], c_off[rows], rms_px[rows] = on2, off2, rms2
+    return c_on, c_off, rms_px
 
 
 def _seen_through(data: ChartData, chart: Scene, rig: Rig) -> ChartData:

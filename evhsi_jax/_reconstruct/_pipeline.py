@@ -220,6 +220,7 @@ def _solve_chunk(
             z = z / scale[:, None]
             big = (jnp.abs(z) > cfg.robust_c) & mk
             u = jnp.where(big, jnp.sqrt(cfg.robust_c / jnp.abs(z)), 1.0)
+            u = jnp.where(jnp.abs(z) > cfg.robust_reject, 0.0, u)
 
             def resolve(u=u):
                 qm, qv, _ = jax.vmap(lambda r, w: system_from_rows(cfg, r, w))(rows, u)

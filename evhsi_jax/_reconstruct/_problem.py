@@ -117,6 +117,10 @@ class ProblemConfig:
       noise model has a low-pass and the recording spans ≤ 4 sweeps (the model's
       time grid grows with the sweeps); 0: the delay shift alone.
     - `robust_c`: Huber threshold in standard deviations of a row.
+    - `robust_reject`: beyond this many standard deviations a row is dropped (weight
+      0) instead of down-weighted: a background event inside the lit interval is not
+      a noisy measurement of anything, and Huber's linear influence still lets it
+      bend the spectrum.
     - `max_reflectance`: the reconstructed cube is clipped to [0, this] (a
       non-fluorescent surface reflects at most 1; the margin covers calibration gain
       errors and surfaces brighter than the white reference).
@@ -138,6 +142,7 @@ class ProblemConfig:
     robust_steps: int = 2
     lowpass_passes: int = 1
     robust_c: float = 4.0
+    robust_reject: float = 12.0
     max_reflectance: float = 1.5
 
     def __post_init__(self):
@@ -157,6 +162,8 @@ class ProblemConfig:
             raise ValueError("m_start_frac must be in (0, 1]")
         if self.noise_floor <= 0 or self.robust_c <= 0 or self.robust_steps < 0:
             raise ValueError("noise_floor and robust_c must be > 0, robust_steps >= 0")
+        if not self.robust_reject > self.robust_c:
+            raise ValueError("robust_reject must be > robust_c")
         if not self.max_reflectance > 0:
             raise ValueError("max_reflectance must be > 0")
 
