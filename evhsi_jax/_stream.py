@@ -368,10 +368,22 @@ def _chunks_of(source, chunk_bytes, strict=False, follow=None):
         if follow is not None:
             raise ValueError("follow applies to a .raw file being written")
         return None, source.split(max(1, chunk_bytes // 2))
+    if follow is not None:  # a live recording may not have been created yet
+        wait_for_file(Path(source), follow.get("idle_timeout_s"), follow.get("should_stop"))
     reader = EventReader(source, chunk_bytes=chunk_bytes, strict=strict)
     if follow is not None:
         return reader, reader.follow(**follow)
     return reader, iter(reader)
+
+
+def wait_for_file(path: Path, timeout_s, should_stop=None, poll_s: float = 0.05):
+    """Wait until `path` exists and holds bytes (the recorder has started), at most
+    `timeout_s` (None: 10 s); then the caller opens it or reports it missing."""
+    deadline = time.monotonic() + (10.0 if timeout_s is None else float(timeout_s))
+    while time.monotonic() < deadline and not (should_stop and should_stop()):
+        if path.is_file() and path.stat().st_size > 0:
+            return
+        time.sleep(poll_s)
 
 
 def _source_info(source, live: bool = False) -> dict:

@@ -370,13 +370,17 @@ def _reconstruct_per_sweep(args):
             raise ValueError(f"--out {out} is the input {name}")
     cal = load_calibration(args.calib)
     rig = cal.rig
+    if not args.idle_timeout > 0:
+        raise ValueError(f"--idle-timeout must be > 0 s, got {args.idle_timeout}")
+    if args.follow:  # started before the recorder: wait for the file to appear
+        from ._stream import wait_for_file
+
+        wait_for_file(Path(args.events), args.idle_timeout)
     reader = EventReader(args.events)  # geometry only; the events are streamed
     cal.check_size(reader.height, reader.width)
     roi = None
     if args.roi is not None:
         roi = check_roi(_parse_roi(args.roi), reader.width, reader.height)
-    if not args.idle_timeout > 0:
-        raise ValueError(f"--idle-timeout must be > 0 s, got {args.idle_timeout}")
     stop = {"asked": False}
     previous = {}
     if args.follow:  # a signal ends the recording: finish the sweeps, then stop

@@ -17,6 +17,21 @@ import evhsi_jax as ev
 OUT = Path(__file__).parent / "results"
 
 
+def matmul_gflops(n: int = 1024, repeats: int = 5) -> float:
+    """This machine's float32 matmul rate through JAX right now (median of
+    `repeats`), printed beside every timing so that runs on different machines
+    compare."""
+    a = jax.numpy.ones((n, n), jax.numpy.float32)
+    f = jax.jit(lambda x: x @ x)
+    f(a).block_until_ready()
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        f(a).block_until_ready()
+        times.append(time.perf_counter() - t)
+    return 2 * n**3 / float(np.median(times)) / 1e9
+
+
 def machine() -> str:
     return (
         f"{os.cpu_count()} CPU ({platform.processor() or platform.machine()}), "

@@ -35,6 +35,7 @@ import jax
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
+from _common import matmul_gflops
 
 import evhsi_jax as ev
 from evhsi_jax._illumination import band_table
@@ -48,19 +49,6 @@ from evhsi_jax._reconstruct._jaxopt import boxcdqp
 from evhsi_jax._reconstruct._solvers import active_set_batch
 
 OUT = Path(__file__).parent / "results" / "bench_solvers.json"
-
-
-def matmul_gflops(n: int = 1024, repeats: int = 5) -> float:
-    """This machine's float32 matmul rate right now (median of `repeats`)."""
-    a = jnp.ones((n, n), jnp.float32)
-    f = jax.jit(lambda x: x @ x)
-    f(a).block_until_ready()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        f(a).block_until_ready()
-        times.append(time.perf_counter() - t0)
-    return 2 * n**3 / statistics.median(times) / 1e9
 
 
 def problems(size, limit: int):

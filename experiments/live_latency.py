@@ -31,24 +31,11 @@ import tempfile
 import time
 from pathlib import Path
 
-import jax
-import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
+from _common import matmul_gflops
 
 import evhsi_jax as ev
-
-
-def matmul_gflops(n: int = 1024, repeats: int = 5) -> float:
-    a = jnp.ones((n, n), jnp.float32)
-    f = jax.jit(lambda x: x @ x)
-    f(a).block_until_ready()
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        f(a).block_until_ready()
-        times.append(time.perf_counter() - t)
-    return 2 * n**3 / float(np.median(times)) / 1e9
 
 
 def live_run(raw: Path, cal, out: Path, roi=None, speed: float = 1.0) -> dict:

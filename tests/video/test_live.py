@@ -111,3 +111,23 @@ def test_roi_equals_the_crop_of_the_full_cube(recording, tmp_path, capsys):
     assert main(["reconstruct", str(d / "rec.raw"), "--calib", str(d / "cal.json"),
                  "--out", str(tmp_path / "c.npz"), "--roi", "1,1,9,3"]) == 2
     assert "not inside" in capsys.readouterr().err
+
+
+def test_follow_waits_for_the_recording_to_appear(recording, tmp_path):
+    """`--follow` started before the recorder: it waits (up to the idle timeout) for
+    the file instead of failing with "not found"."""
+    import shutil
+    import threading
+
+    d, cal = recording
+    live = tmp_path / "late.raw"
+    late = threading.Timer(0.5, shutil.copyfile, (d / "rec.raw", live))
+    late.start()
+    try:
+        res = ev.reconstruct_sweeps(
+            live, cal, tmp_path / "out", follow=True, idle_timeout_s=3.0,
+            preview=False,
+        )  # fmt: skip
+    finally:
+        late.join()
+    assert res.reconstructed == SWEEPS
