@@ -970,8 +970,12 @@ def threshold_maps_from_chart(
     off = np.full(h * w, float(rig.threshold_off))
     data = chart_data(events, chart, rig, t_start_us=t_start_us, rows_per_label=None)
     best = None
-    for sigma in psf_sigmas_px:
-        d = _seen_through(data, chart.blurred(float(sigma)), rig)
+    seen = [_seen_through(data, chart.blurred(float(v)), rig) for v in psf_sigmas_px]
+    n_spec = max(d.spectra.shape[0] for d in seen)  # one padded shape: one compilation
+    for sigma, d in zip(psf_sigmas_px, seen):
+        d = dataclasses.replace(
+            d, spectra=np.pad(d.spectra, ((0, n_spec - d.spectra.shape[0]), (0, 0)))
+        )
         steps = _log_steps(rig, d)
         c_on, c_off = _closed_form_thresholds(steps, d)
         rms_px = _rms_own_thresholds(steps, d, c_on, c_off)
