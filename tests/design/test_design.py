@@ -112,6 +112,7 @@ def _problem32():
     return ev.design.design_problem(spectra_limit=3, gains=(1.0, 0.64), space=SPACE)
 
 
+@pytest.mark.slow  # ~50 s cold; the box-edge corners above run in every `make test`
 def test_design_loss_finite_at_random_points_float32():
     """Production path (float32, likelihood-ratio estimator for C and c, jitter):
     loss and gradient finite at random points spread over the whole box, including
