@@ -971,20 +971,20 @@ def threshold_maps_from_chart(
     data = chart_data(events, chart, rig, t_start_us=t_start_us, rows_per_label=None)
     best = None
     seen = [_seen_through(data, chart.blurred(float(v)), rig) for v in psf_sigmas_px]
-    n_spec = max(d.spectra.shape[0] for d in seen)  # one padded shape: one compilation
+    # One padded spectra count (a power of two) for every blur: one compilation.
+    rows = 1 << max(max(d.spectra.shape[0] for d in seen) - 1, 1).bit_length()
     for sigma, d in zip(psf_sigmas_px, seen):
         d = dataclasses.replace(
-            d, spectra=np.pad(d.spectra, ((0, n_spec - d.spectra.shape[0]), (0, 0)))
+            d, spectra=np.pad(d.spectra, ((0, rows - d.spectra.shape[0]), (0, 0)))
         )
         steps = _log_steps(rig, d)
         c_on, c_off = _closed_form_thresholds(steps, d)
         rms_px = _rms_own_thresholds(steps, d, c_on, c_off)
         ssr = float(np.nansum(rms_px**2 * d.mask.sum(1)))
         if best is None or ssr < best[0]:
-            best = (ssr, float(sigma), c_on, c_off, rms_px)
-    _, psf, c_on, c_off, rms_px = best
-    d = _seen_through(data, chart.blurred(psf), rig)
-    c_on, c_off, rms_px = _refit_without_stray_events(rig, d, c_on, c_off, rms_px)
+            best = (ssr, float(sigma), d, steps, c_on, c_off, rms_px)
+    _, psf, d, steps, c_on, c_off, rms_px = best
+    c_on, c_off, rms_px = _refit_without_stray_events(rig, d, steps, c_on, c_off, rms_px)
     med = np.nanmedian(rms_px)
     mad = np.nanmedian(np.abs(rms_px - med))
     misfit = rms_px > max(2.0 * med, med + 8.0 * 1.4826 * mad, 0.02)
@@ -996,15 +996,14 @@ def threshold_maps_from_chart(
     return (*maps, psf) if return_psf else maps
 
 
-def _refit_without_stray_events(rig: Rig, d: ChartData, c_on, c_off, rms_px):
+def _refit_without_stray_events(rig: Rig, d: ChartData, steps, c_on, c_off, rms_px):
     """Closed-form thresholds again for pixels with a stray event — one whose residual
     with the pixel's own thresholds is beyond max(0.5, 6 robust σ) thresholds: a
     background event inside the lit interval, or a crossing the model misses — with
     that event removed from the pixel's list (so the next event refers to the one
     before it). One noise event would otherwise cost the whole pixel its own
     thresholds (it would fail the misfit test); with a gray chart recorded for many
-    sweeps most pixels catch one."""
-    steps = _log_steps(rig, d)
+    sweeps most pixels catch one. `steps` are `d`'s model log steps."""
     c_px = np.where(d.polarity > 0, c_on[:, None], c_off[:, None])
     with np.errstate(invalid="ignore", divide="ignore"):
         r = np.where(d.mask, steps / c_px - d.polarity, 0.0)
@@ -1038,8 +1037,6 @@ def _seen_through(data: ChartData, chart: Scene, rig: Rig) -> ChartData:
     labels = chart.labels.reshape(-1)[data.pixel]
     used, spectrum = np.unique(labels, return_inverse=True)
     fine = chart.palette_on(rig.grid.fine_edges_nm)[used]
-    # Pad to a power of two so that the blurs searched share compiled shapes.
-    fine = np.pad(fine, ((0, (1 << max(used.size - 1, 1).bit_length()) - used.size), (0, 0)))
     return dataclasses.replace(data, spectra=fine, spectrum=spectrum.reshape(-1))
 
 

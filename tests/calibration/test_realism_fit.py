@@ -99,6 +99,6 @@ def test_a_background_event_does_not_cost_a_pixel_its_thresholds(monkeypatch):
 
     assert share_close() > 0.8  # (0.86 in a development run)
     monkeypatch.setattr(
-        _calibrate, "_refit_without_stray_events", lambda rig, d, *rest: rest
+        _calibrate, "_refit_without_stray_events", lambda rig, d, steps, *rest: rest
     )
     assert share_close() < 0.75  # without the refit: 0.67, so the check can fail
