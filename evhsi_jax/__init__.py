@@ -22,25 +22,25 @@ from . import metrics as metrics
 from . import reconstruction as reconstruction
 from . import sharding as sharding
 from . import video as video
-from ._cache import enable_compilation_cache as enable_compilation_cache
+from ._base import enable_compilation_cache as enable_compilation_cache
+from ._base import evaluate as evaluate
 from ._calibrate import calibrate as calibrate
 from ._calibrate import save_calibration as save_calibration
-from ._calibration import Calibration as Calibration
-from ._calibration import load_calibration as load_calibration
-from ._cubefile import load_cube as load_cube
-from ._cubefile import save_cube as save_cube
-from ._events import EventStream as EventStream
+from ._io import cube_to_srgb as cube_to_srgb
+from ._io import load_cube as load_cube
 from ._io import read_events as read_events
+from ._io import save_cube as save_cube
 from ._io import write_events as write_events
-from ._metrics import evaluate as evaluate
+from ._io import write_png as write_png
+from ._model import Calibration as Calibration
+from ._model import EventStream as EventStream
+from ._model import Rig as Rig
+from ._model import Scene as Scene
+from ._model import load_calibration as load_calibration
+from ._model import load_scene as load_scene
 from ._reconstruct import reconstruct as reconstruct
-from ._render import cube_to_srgb as cube_to_srgb
-from ._render import write_png as write_png
-from ._rig import Rig as Rig
-from ._scenes import Scene as Scene
-from ._scenes import load_scene as load_scene
 from ._simulate import simulate as simulate
-from ._stream import reconstruct_sweeps as reconstruct_sweeps
+from ._video import reconstruct_sweeps as reconstruct_sweeps
 
 __version__ = "0.1.0"
 

@@ -16,14 +16,11 @@ from pathlib import Path
 import jax.random as jr
 import numpy as np
 
+from ._base import evaluate
 from ._calibrate import calibrate, save_calibration
-from ._cubefile import save_cube
-from ._io import evt3_bytes, write_events
-from ._metrics import evaluate
+from ._io import cube_to_srgb, evt3_bytes, save_cube, write_comparison_png, write_events
+from ._model import Rig, load_scene, parse_size
 from ._reconstruct import reconstruct
-from ._render import cube_to_srgb, write_comparison_png
-from ._rig import Rig
-from ._scenes import load_scene, parse_size
 from ._simulate import simulate
 
 __all__ = ["run_demo"]

@@ -13,8 +13,8 @@ from ._calibrate import save_calibration as save_calibration
 from ._calibrate import spectral_correction as spectral_correction
 from ._calibrate import spectral_traces as spectral_traces
 from ._calibrate import threshold_maps_from_chart as threshold_maps_from_chart
-from ._calibration import Calibration as Calibration
-from ._calibration import load_calibration as load_calibration
+from ._model import Calibration as Calibration
+from ._model import load_calibration as load_calibration
 
 __all__ = [
     "calibrate",

@@ -16,9 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ._cubefile import CUBE_SUFFIXES
-from ._events import check_roi
-from ._storage import check_outputs, same_file
+from ._base import check_outputs, same_file
+from ._io import CUBE_SUFFIXES
+from ._model import check_roi
 
 __all__ = ["main"]
 
@@ -43,7 +43,7 @@ def _add_rig(p):
 
 
 def _load_rig(path):
-    from ._rig import Rig
+    from ._model import Rig
 
     return Rig.load(path) if path else Rig()
 
@@ -118,7 +118,7 @@ def _add_strict(p):
 
 # --- sub-commands ---------------------------------------------------------------------
 def cmd_rig(args):
-    from ._scenes import parse_size
+    from ._model import parse_size
 
     rig = _load_rig(args.rig)
     h, w = parse_size(args.size) or (720, 1280)
@@ -129,9 +129,8 @@ def cmd_rig(args):
 def cmd_simulate(args):
     import jax.random as jr
 
-    from ._cubefile import save_cube
-    from ._io import write_events
-    from ._scenes import load_scene, parse_size
+    from ._io import save_cube, write_events
+    from ._model import load_scene, parse_size
     from ._simulate import simulate
 
     out = _out_path(args.out, (".npz", ".raw"), "--out")
@@ -181,8 +180,7 @@ def cmd_simulate(args):
 
 
 def cmd_render(args):
-    from ._cubefile import load_cube
-    from ._render import cube_to_srgb, write_png
+    from ._io import cube_to_srgb, load_cube, write_png
 
     out = _out_path(args.out, (".png",), "--out")
     check_outputs({"CUBE": args.cube}, {"--out": out})
@@ -223,10 +221,9 @@ def cmd_reconstruct(args):
         raise ValueError(
             "--max-sweeps, --restart and --follow apply only with --per-sweep"
         )
-    from ._calibration import load_calibration
-    from ._cubefile import save_cube
+    from ._io import cube_to_srgb, save_cube, write_png
+    from ._model import load_calibration
     from ._reconstruct import reconstruct
-    from ._render import cube_to_srgb, write_png
 
     out = _out_path(args.out, CUBE_SUFFIXES, "--out")
     preview = _out_path(args.preview, (".png",), "--preview") if args.preview else None
@@ -267,7 +264,7 @@ def cmd_reconstruct(args):
     if notes:
         notes[-1] += f"; used {info.sweeps} sweep(s) from {info.t_start_us} µs"
     _problems(args, args.events, notes)
-    from ._shard import is_main_process
+    from ._base import is_main_process
 
     if is_main_process():  # in a multi-process run, process 0 writes
         save_cube(
@@ -320,13 +317,13 @@ def _cpu_devices(devices) -> None:
 def _mesh(devices):
     if devices in (None, 1):
         return None
-    from ._shard import pixel_mesh
+    from ._base import pixel_mesh
 
     return pixel_mesh(None if devices == 0 else devices)
 
 
 def _run_sweeps(args, cal, out, roi, stop):
-    from ._stream import reconstruct_sweeps
+    from ._video import reconstruct_sweeps
 
     return reconstruct_sweeps(
         args.events,
@@ -347,8 +344,8 @@ def _run_sweeps(args, cal, out, roi, stop):
 
 
 def _reconstruct_per_sweep(args):
-    from ._calibration import load_calibration
     from ._io import EventReader
+    from ._model import load_calibration
 
     out = Path(args.out)
     if out.suffix and out.suffix.lower() != ".zarr":
@@ -373,7 +370,7 @@ def _reconstruct_per_sweep(args):
     if not args.idle_timeout > 0:
         raise ValueError(f"--idle-timeout must be > 0 s, got {args.idle_timeout}")
     if args.follow:  # started before the recorder: wait for the file to appear
-        from ._stream import wait_for_file
+        from ._video import wait_for_file
 
         wait_for_file(Path(args.events), args.idle_timeout)
     reader = EventReader(args.events)  # geometry only; the events are streamed
@@ -407,7 +404,7 @@ def _reconstruct_per_sweep(args):
     n = res.index["height"] * res.index["width"]
     rate = res.reconstructed / res.solve_seconds if res.solve_seconds else 0.0
     low = res.low_event_sweeps
-    from ._shard import is_main_process
+    from ._base import is_main_process
 
     if is_main_process():
         print(
@@ -421,8 +418,8 @@ def _reconstruct_per_sweep(args):
 
 
 def cmd_evaluate(args):
-    from ._cubefile import load_cube
-    from ._metrics import evaluate, per_label_table
+    from ._base import evaluate, per_label_table
+    from ._io import load_cube
 
     est = load_cube(args.cube)
     ref = load_cube(args.truth)
@@ -477,7 +474,7 @@ def cmd_convert(args):
 def _file_kind(path) -> str:
     """What `convert` was given: "events", "cube" or "sweeps" (a per-sweep folder or
     video store), by extension and, for `.npz`, by its keys."""
-    from ._video_store import holds_video
+    from ._video import holds_video
 
     p = Path(path)
     suffix = p.suffix.lower()
@@ -498,9 +495,8 @@ def _file_kind(path) -> str:
 
 
 def _convert_cubes(args, kind: str) -> int:
-    from ._cubefile import load_cube, save_cube
-    from ._stream import convert_sweeps, iter_sweep_cubes
-    from ._video_store import is_video_store
+    from ._io import load_cube, save_cube
+    from ._video import convert_sweeps, is_video_store, iter_sweep_cubes
 
     if kind == "sweeps" and args.sweep is None:
         if not is_video_store(args.dst):
@@ -535,8 +531,7 @@ def _convert_cubes(args, kind: str) -> int:
 
 def cmd_calibrate(args):
     from ._calibrate import calibrate, save_calibration
-    from ._calibration import Calibration
-    from ._scenes import load_scene
+    from ._model import Calibration, load_scene
 
     out = _out_path(args.out, (".json",), "--out")
     chart_file = args.chart if str(args.chart).endswith(".npz") else None
@@ -594,7 +589,7 @@ def cmd_calibrate(args):
 
 
 def cmd_view(args):
-    from ._viewer import CubeSource, make_server
+    from ._video import CubeSource, make_server
 
     if not 0 <= args.port <= 65535:
         raise ValueError(f"--port must be in [0, 65535], got {args.port}")
@@ -631,7 +626,7 @@ def cmd_demo(args):
 
 # --- parser ---------------------------------------------------------------------------
 def build_parser() -> argparse.ArgumentParser:
-    from ._rig import Rig
+    from ._model import Rig
 
     top = _Parser(
         prog="evhsi",
@@ -936,12 +931,12 @@ def main(argv=None) -> int:
 
         jax.config.update("jax_enable_x64", True)
     if args.command in ("simulate", "reconstruct", "calibrate", "demo"):
-        from ._cache import enable_compilation_cache
+        from ._base import enable_compilation_cache
 
         enable_compilation_cache()  # EVHSI_CACHE_DIR=off turns it off
     try:
         if args.distributed:
-            from ._shard import initialize_distributed
+            from ._base import initialize_distributed
 
             initialize_distributed()
         return int(args.func(args) or 0)

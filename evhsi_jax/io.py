@@ -2,9 +2,6 @@
 
 Public namespace `evhsi_jax.io`; the implementation lives in private modules."""
 
-from ._cubefile import load_cube as load_cube
-from ._cubefile import save_cube as save_cube
-from ._events import EventStream as EventStream
 from ._io import DecodeError as DecodeError
 from ._io import DecodeReport as DecodeReport
 from ._io import EventReader as EventReader
@@ -16,13 +13,16 @@ from ._io import estimate_sweep_phase as estimate_sweep_phase
 from ._io import evt3_bytes as evt3_bytes
 from ._io import frame_bytes as frame_bytes
 from ._io import iter_events as iter_events
+from ._io import load_cube as load_cube
 from ._io import nominal_event_bytes as nominal_event_bytes
 from ._io import read_events as read_events
 from ._io import read_events_window as read_events_window
 from ._io import replay_raw as replay_raw
+from ._io import save_cube as save_cube
 from ._io import split_sweeps as split_sweeps
 from ._io import write_events as write_events
 from ._io import write_evt3 as write_evt3
+from ._model import EventStream as EventStream
 
 __all__ = [
     "EventReader",

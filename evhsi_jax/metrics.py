@@ -2,13 +2,13 @@
 
 Public namespace `evhsi_jax.metrics`; the implementation lives in private modules."""
 
-from ._metrics import evaluate as evaluate
-from ._metrics import per_label_table as per_label_table
-from ._metrics import psnr_db as psnr_db
-from ._metrics import rms as rms
-from ._metrics import sam_deg as sam_deg
-from ._metrics import sam_map_deg as sam_map_deg
-from ._metrics import ssim as ssim
+from ._base import evaluate as evaluate
+from ._base import per_label_table as per_label_table
+from ._base import psnr_db as psnr_db
+from ._base import rms as rms
+from ._base import sam_deg as sam_deg
+from ._base import sam_map_deg as sam_map_deg
+from ._base import ssim as ssim
 
 __all__ = [
     "evaluate",

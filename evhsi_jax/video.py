@@ -2,15 +2,15 @@
 
 Public namespace `evhsi_jax.video`; the implementation lives in private modules."""
 
-from ._render import cube_to_srgb as cube_to_srgb
-from ._render import write_comparison_png as write_comparison_png
-from ._render import write_png as write_png
-from ._stream import StreamResult as StreamResult
-from ._stream import iter_sweep_cubes as iter_sweep_cubes
-from ._stream import load_sweep_index as load_sweep_index
-from ._stream import reconstruct_sweeps as reconstruct_sweeps
-from ._stream import sweep_file_name as sweep_file_name
-from ._stream import write_preview_gif as write_preview_gif
+from ._io import cube_to_srgb as cube_to_srgb
+from ._io import write_comparison_png as write_comparison_png
+from ._io import write_png as write_png
+from ._video import StreamResult as StreamResult
+from ._video import iter_sweep_cubes as iter_sweep_cubes
+from ._video import load_sweep_index as load_sweep_index
+from ._video import reconstruct_sweeps as reconstruct_sweeps
+from ._video import sweep_file_name as sweep_file_name
+from ._video import write_preview_gif as write_preview_gif
 
 __all__ = [
     "reconstruct_sweeps",

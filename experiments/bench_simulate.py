@@ -82,8 +82,8 @@ def profile_sweep(scene, rig, chunk_columns: int) -> dict:
     import jax.random as jr
 
     from evhsi_jax import _simulate as sim
-    from evhsi_jax._illumination import band_table
-    from evhsi_jax._spectra import band_integrate_matrix
+    from evhsi_jax._base._spectra import band_integrate_matrix
+    from evhsi_jax._model._illumination import band_table
 
     h, w = scene.height, scene.width
     offsets = np.asarray(rig.column_offsets(w), np.float64)

@@ -38,7 +38,7 @@ import numpy as np
 from _common import matmul_gflops
 
 import evhsi_jax as ev
-from evhsi_jax._illumination import band_table
+from evhsi_jax._model._illumination import band_table
 from evhsi_jax._reconstruct import (
     PixelEvents,
     ProblemConfig,

@@ -24,7 +24,7 @@ import numpy as np
 from _common import capture, pyplot, save, timed_reconstruct
 
 import evhsi_jax as ev
-from evhsi_jax._illumination import band_table, lookup
+from evhsi_jax._model._illumination import band_table, lookup
 
 SIZE = (48, 96)
 PARTS = ("peak", "step", "notch")

@@ -17,7 +17,7 @@ import pytest
 
 jax.config.update("jax_numpy_dtype_promotion", "strict")
 
-from evhsi_jax._cache import cache_dir, enable_compilation_cache  # noqa: E402
+from evhsi_jax._base._cache import cache_dir, enable_compilation_cache  # noqa: E402
 
 if cache_dir() is not None:
     os.environ.setdefault("EVHSI_CACHE_DIR", str(cache_dir()))
@@ -43,7 +43,7 @@ def shared_data():
 def io_backend(request):
     """Run a module's event-file tests with the numba kernels and the NumPy reference
     (`pytestmark = pytest.mark.usefixtures("io_backend")`)."""
-    from evhsi_jax._io import _jit
+    from evhsi_jax._io import _numba as _jit
 
     if request.param == "numba" and not _jit.numba_available():
         pytest.skip("no numba")

@@ -80,7 +80,7 @@ def test_ssim_window_statistic_at_centre_pixel():
     )
     from scipy import ndimage
 
-    from evhsi_jax._metrics import _ssim_2d
+    from evhsi_jax._base._metrics import _ssim_2d
 
     # Reproduce the map value at the centre through the library's filtered statistics.
     filt = lambda im: ndimage.gaussian_filter(im, 1.5, truncate=3.5, mode="reflect")  # noqa: E731

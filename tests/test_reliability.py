@@ -24,7 +24,7 @@ import evhsi_jax as ev
 from evhsi_jax._io import DecodeReport, EventReader
 from evhsi_jax._io._header import format_header
 from evhsi_jax._reconstruct._pipeline import select_sweeps
-from evhsi_jax._stream import LOCK_NAME
+from evhsi_jax._video._stream import LOCK_NAME
 from evhsi_jax.cli import main
 
 H, W = 4, 6

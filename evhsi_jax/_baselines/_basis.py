@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .._spectra import SpectralGrid, band_integrate
+from .._base import SpectralGrid, band_integrate
 
 __all__ = [
     "SpectralBasis",
@@ -84,7 +84,7 @@ def _colorchecker_spectra() -> tuple[np.ndarray, np.ndarray]:
 def _source(name: str) -> tuple[list[str], np.ndarray, np.ndarray]:
     """Names, wavelengths (L,) and spectra (K, L) of one training source."""
     if name == "tcs":
-        from .._scenes import load_scene
+        from .._model import load_scene
 
         scene = load_scene("tcs")
         return list(scene.names), scene.wavelengths_nm, scene.palette

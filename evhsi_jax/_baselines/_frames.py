@@ -48,12 +48,9 @@ import jax.random as jr
 import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
-from .._events import EventStream
-from .._illumination import BandTable, band_table, lookup
 from .._io import frame_bytes, nominal_event_bytes
+from .._model import BandTable, EventStream, Rig, Scene, band_table, lookup
 from .._reconstruct import spectral_prior_matrix
-from .._rig import Rig
-from .._scenes import Scene
 from ._nnls import nonneg_lsq_shared
 
 __all__ = [

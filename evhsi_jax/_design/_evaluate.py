@@ -7,10 +7,9 @@ import time
 import jax.random as jr
 import numpy as np
 
-from .._metrics import evaluate
+from .._base import evaluate
+from .._model import Rig, Scene, load_scene
 from .._reconstruct import reconstruct
-from .._rig import Rig
-from .._scenes import Scene, load_scene
 from .._simulate import simulate
 from ._objective import DEFAULT_GAINS
 from ._space import DesignLimits, DesignParams

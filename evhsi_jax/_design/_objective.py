@@ -7,7 +7,7 @@ $\\mathcal L(θ) = \\log \\overline{\\mathrm{MSE}}(θ) + ρ \\sum_i \\max(0, g_i
   each pixel simulated for one sweep (known thresholds, no mismatch: the design
   question is what the optics allow, not how well thresholds are calibrated) and
   reconstructed by the library's per-pixel QP (`pixel_system`, implicit-differentiation
-  `box_qp`), with events from `_events` (structure held, times by the implicit function
+  `box_qp`), with events from `_soft_events` (structure held, times by the implicit function
   theorem, smooth existence of marginal events).
 - $g_i$: the hardware limits of :mod:`._space`; the event rate comes from the soft event
   model (:func:`~evhsi_jax.forward.soft_event_counts`, temperature 0.002: ±1 % of the exact
@@ -33,12 +33,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from .._illumination import band_table, lookup
+from .._model import Rig, band_table, load_scene, lookup, soft_event_counts
 from .._reconstruct import ProblemConfig, box_qp
-from .._rig import Rig
-from .._scenes import load_scene
-from .._sensor import soft_event_counts
-from ._events import (
+from ._soft_events import (
     StructureConfig,
     band_grid,
     hard_events,

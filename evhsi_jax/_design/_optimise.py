@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from .._storage import atomic_write
+from .._base import atomic_write
 from ._gradient import design_value_and_grad
 from ._objective import DesignProblem
 from ._space import DesignParams

@@ -38,7 +38,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from .._rig import COLUMN_SPREAD, Rig
+from .._model import COLUMN_SPREAD, Rig
 
 __all__ = ["DesignParams", "DesignSpace", "DesignLimits", "constraint_values"]
 

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._events import EventStream
+from .._model import EventStream
 from ._evt3_encode import evt3_word_count
 from ._header import format_header
 

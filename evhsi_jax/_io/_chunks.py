@@ -17,7 +17,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .._events import EventStream
+from .._model import EventStream
 from ._report import DecodeError, DecodeReport
 
 POPCOUNT12 = np.array([bin(i).count("1") for i in range(1 << 12)], np.uint8)

@@ -49,7 +49,7 @@ from ._decode_kernels import (
 )
 from ._evt2 import Evt2State
 from ._evt3_decode import Evt3State
-from ._jit import readonly
+from ._numba import readonly
 from ._report import DecodeError, DecodeReport
 
 __all__ = ["decode_words", "decode_all", "count_words"]

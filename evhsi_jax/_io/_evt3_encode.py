@@ -28,7 +28,7 @@ wrap is an adjacent 4095 → 0 pair, which all three rules decode the same way. 
 TIME_HIGH is reached from time 0 the same way, so absolute times beyond 16.78 s survive
 too.
 
-With the compiled kernels (`_jit`, the default) each block is encoded by
+With the compiled kernels (`_numba`, the default) each block is encoded by
 `_encode_jit.encode_block` into one reused buffer instead of the `(items, 5)` table;
 the words are the same.
 """
@@ -40,9 +40,9 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from .._events import EventStream
-from .._storage import atomic_write
-from . import _jit
+from .._base import atomic_write
+from .._model import EventStream
+from . import _numba
 from ._header import format_header
 
 __all__ = ["encode_evt3_words", "evt3_word_count", "write_evt3", "MAX_EVT3_SIZE"]
@@ -58,7 +58,7 @@ def _check(events: EventStream) -> bool:
             f"EVT 3.0 addresses are 11 bits: geometry {events.width}x{events.height} "
             f"exceeds {MAX_EVT3_SIZE}x{MAX_EVT3_SIZE}"
         )
-    if _jit.use_numba():  # both in one pass, without temporaries
+    if _numba.use_numba():  # both in one pass, without temporaries
         from ._encode_jit import order_and_min
 
         ordered, t_min = order_and_min(events.t_us)
@@ -232,7 +232,7 @@ def evt3_word_count(events: EventStream, *, reorder: bool = False) -> int:
     **Returns:** the word count (bytes = 2 × words).
     """
     total = 0
-    if _jit.use_numba():
+    if _numba.use_numba():
         from ._encode_jit import encode_block
 
         for block in _blocks(events, reorder):
@@ -264,7 +264,7 @@ def _encode_blocks(
 ) -> Iterator[np.ndarray]:
     """The words block by block (valid until the next block is asked for: the
     compiled path reuses one buffer)."""
-    if _jit.use_numba():
+    if _numba.use_numba():
         from ._encode_jit import encode_block
 
         buffer = None

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .._events import EventStream
+from .._model import EventStream
 from ._evt3_encode import write_evt3
 from ._reader import DEFAULT_CHUNK_BYTES, EventReader
 

@@ -5,7 +5,7 @@ file and hands out `EventStream` chunks. Raw files are read `chunk_bytes` at a t
 decoder state (row, vector base, time base, wrap count, running maximum) is carried from
 chunk to chunk, so memory stays bounded by the chunk size and the result does not depend
 on where chunks are cut (nor on the number of decoding threads, nor on whether the
-compiled kernels or the NumPy reference decode them; see `_pipeline` and `_jit`).
+compiled kernels or the NumPy reference decode them; see `_decode` and `_numba`).
 
 A time window `[t0, t1)` is read without decoding the whole file: the first window read
 makes one cheap pass that advances the decoder state without expanding events and
@@ -23,12 +23,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .._events import EventStream
+from .._model import EventStream
 from ._chunks import DecodedChunk, as_stream
+from ._decode import CODECS, decode_chunks, decode_range
 from ._evt2 import Evt2State
 from ._evt3_decode import Evt3State
 from ._header import DEFAULT_GEOMETRY, MAX_HEADER_BYTES, RawHeader, parse_header
-from ._pipeline import CODECS, decode_chunks, decode_range
 from ._report import DecodeReport
 
 __all__ = [
@@ -75,7 +75,7 @@ class EventReader:
     - `workers`: decoding threads of the NumPy path (`EVHSI_NO_NUMBA=1`; the compiled
       kernels decode on the calling thread); `None` uses two for chunks of 64 KiB and
       more when there are at least four of them (the result does not depend on it, see
-      `_pipeline`).
+      `_decode`).
 
     After reading, `report` holds the counts of what was decoded and skipped.
     """

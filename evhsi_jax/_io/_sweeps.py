@@ -23,7 +23,7 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from .._events import EventStream
+from .._model import EventStream
 
 __all__ = ["Sweeps", "SweepCutter", "split_sweeps", "estimate_sweep_phase"]
 

@@ -19,8 +19,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from .._illumination import band_table
-from .._rig import Rig
+from .._model import Rig, band_table
 from ._pixels import PixelEvents
 from ._problem import ProblemConfig, pixel_system
 from ._solvers import active_set, cho_factor, reduced

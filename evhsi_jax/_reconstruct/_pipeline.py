@@ -20,12 +20,8 @@ from jax.sharding import Mesh
 from jax.sharding import PartitionSpec as P
 from tqdm.auto import tqdm
 
-from .. import _shard
-from .._calibration import Calibration
-from .._events import EventStream
-from .._illumination import band_table
-from .._limits import check_fits
-from .._rig import Rig
+from .._base import check_fits, shard
+from .._model import Calibration, EventStream, Rig, band_table
 from . import _solvers
 from ._pixels import PixelEvents, group_pixels
 from ._problem import ProblemConfig, lit_interval_us, pixel_system, system_from_rows
@@ -365,7 +361,7 @@ def reconstruct(
       the kernel differently and the cube differs by float32 rounding (3e-5 on
       reflectance ~0.5 in tests/reconstruction/test_shard.py; solved pixels and event counts equal).
       Several CPU devices solve one pixel per sub-batch (see
-      `evhsi_jax._shard.sub_batch_for`).
+      `evhsi_jax._base._shard.sub_batch_for`).
 
     **Returns:** the cube `(H, W, M)` float32 (and the info if asked). Never NaN: a
     pixel whose batched solve is non-finite (float32 rounding on a nearly singular
@@ -418,7 +414,7 @@ def reconstruct(
     solve, n_dev = _solve_chunk, 1
     if mesh is not None:
         solve, n_dev = functools.partial(solve_chunk_sharded, mesh), mesh.devices.size
-        sub = _shard.sub_batch_for(mesh, sub)
+        sub = shard.sub_batch_for(mesh, sub)
     chunk = sub * math.ceil(chunk_pixels / sub)
     screened, hot, n_dropped = screen_events(
         events, rig, t_start_us, noise, sweeps, cal.hot_pixels
@@ -613,8 +609,8 @@ def _solver_fn(mesh, cfg, spec, sub, sweeps, with_noise):
     mapped = jax.shard_map(
         local,
         mesh=mesh,
-        in_specs=(P(), P(), P(), P(_shard.PIXELS)),
-        out_specs=(P(_shard.PIXELS), P(_shard.PIXELS)),
+        in_specs=(P(), P(), P(), P(shard.PIXELS)),
+        out_specs=(P(shard.PIXELS), P(shard.PIXELS)),
         check_vma=False,
     )
     return eqx.filter_jit(mapped)
@@ -637,17 +633,17 @@ def solve_chunk_sharded(
     chunk's pixel count must be a multiple of `mesh.size * sub`.
     """
     n = np.shape(px.t_us)[0]
-    if n % (_shard.mesh_size(mesh) * sub):
+    if n % (shard.mesh_size(mesh) * sub):
         raise ValueError(
-            f"chunk of {n} pixels does not split into {_shard.mesh_size(mesh)}×{sub}"
+            f"chunk of {n} pixels does not split into {shard.mesh_size(mesh)}×{sub}"
         )
-    rows = jax.tree.map(lambda a: _shard.to_global(mesh, np.asarray(a)), px)
+    rows = jax.tree.map(lambda a: shard.to_global(mesh, np.asarray(a)), px)
     fn = _solver_fn(mesh, cfg, spec, int(sub), int(sweeps), noise is not None)
     noise_arr = jnp.zeros(3, table.values.dtype) if noise is None else noise
     x, kkt = fn(
-        _shard.replicated(mesh, rig),
-        _shard.replicated(mesh, table),
-        _shard.replicated(mesh, noise_arr),
+        shard.replicated(mesh, rig),
+        shard.replicated(mesh, table),
+        shard.replicated(mesh, noise_arr),
         rows,
     )
-    return _shard.to_host(x), _shard.to_host(kkt)
+    return shard.to_host(x), shard.to_host(kkt)

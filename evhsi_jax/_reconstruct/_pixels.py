@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from .._events import EventStream
+from .._model import EventStream
 
 __all__ = ["PixelBatch", "PixelEvents", "group_pixels", "bucket_sizes"]
 

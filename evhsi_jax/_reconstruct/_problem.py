@@ -59,8 +59,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from .._illumination import BandTable, lookup
-from .._rig import Rig
+from .._model import BandTable, Rig, lookup
 from ._pixels import PixelEvents
 
 __all__ = [

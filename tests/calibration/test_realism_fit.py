@@ -86,7 +86,7 @@ def test_a_background_event_does_not_cost_a_pixel_its_thresholds(monkeypatch):
     interval over a few sweeps; the event is dropped from the pixel's list and the
     pixel keeps its own thresholds (before: it failed the misfit test and got the
     global pair, off by the pixel spread)."""
-    from evhsi_jax import _calibrate
+    from evhsi_jax._calibrate import _chart
 
     chart = ev.load_scene("gray-chart", (24, 32))
     true = ev.Rig(noise_rate_hz=3.0)
@@ -99,6 +99,6 @@ def test_a_background_event_does_not_cost_a_pixel_its_thresholds(monkeypatch):
 
     assert share_close() > 0.8  # (0.86 in a development run)
     monkeypatch.setattr(
-        _calibrate, "_refit_without_stray_events", lambda rig, d, steps, *rest: rest
+        _chart, "_refit_without_stray_events", lambda rig, d, steps, *rest: rest
     )
     assert share_close() < 0.75  # without the refit: 0.67, so the check can fail

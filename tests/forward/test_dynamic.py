@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import evhsi_jax as ev
-from evhsi_jax._dynamic import (
+from evhsi_jax._model._dynamic import (
     changed_pixels,
     dynamic_scene,
     iridescent_reflectance,

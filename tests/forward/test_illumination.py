@@ -10,7 +10,7 @@ import pytest
 import scipy.special
 
 from evhsi_jax import Rig
-from evhsi_jax._illumination import TABLE_STEP_NM, table_range_nm
+from evhsi_jax._model._illumination import TABLE_STEP_NM, table_range_nm
 from evhsi_jax.forward import (
     band_table,
     column_time_table,

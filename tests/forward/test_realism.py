@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 
 import evhsi_jax as ev
+from evhsi_jax._model._sensor import exact_events_scan, photoreceptor_lowpass
 from evhsi_jax._reconstruct import (
     PixelEvents,
     ProblemConfig,
     group_pixels,
     pixel_system,
 )
-from evhsi_jax._sensor import exact_events_scan, photoreceptor_lowpass
-from evhsi_jax._simulate import threshold_maps
+from evhsi_jax._simulate._capture import threshold_maps
 
 H, W = 16, 24
 
@@ -164,7 +164,7 @@ def test_realistic_preset_resolves_and_round_trips():
 
 def test_noise_weights_match_a_numpy_reference():
     rig = ev.Rig()
-    from evhsi_jax._illumination import band_table
+    from evhsi_jax._model._illumination import band_table
 
     table = band_table(rig).channels(rig.grid.sub)
     e = ev.simulate(ev.load_scene("colorchecker", (4, 6)), rig, key=jr.key(1))
@@ -197,7 +197,7 @@ def test_linearised_lowpass_rows_explain_a_lowpassed_capture():
     # At the true spectrum the linearised low-pass rows leave residuals far below the
     # delay-shift rows' (both in log units ≈ relative intensity).
     rig = ev.Rig(photoreceptor_hz=5000.0, threshold_sigma=0.0)
-    from evhsi_jax._illumination import band_table
+    from evhsi_jax._model._illumination import band_table
 
     scene = ev.load_scene("colorchecker", (4, 6))
     e = ev.simulate(scene, rig, key=jr.key(2))

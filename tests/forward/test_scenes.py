@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from evhsi_jax import Rig, Scene, load_scene
-from evhsi_jax._scenes import parse_size
+from evhsi_jax._model._scenes import parse_size
 from evhsi_jax.forward import BUILTIN_SCENES
 
 CMFS = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"]

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from evhsi_jax import Rig, Scene, load_scene, simulate
-from evhsi_jax._simulate import time_oversampling
+from evhsi_jax._simulate._capture import time_oversampling
 from evhsi_jax.forward import band_table, threshold_maps
 
 H, W = 4, 6

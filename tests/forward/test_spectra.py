@@ -8,7 +8,7 @@ import pytest
 import scipy.integrate
 import scipy.interpolate
 
-from evhsi_jax._spectra import band_integrate_matrix
+from evhsi_jax._base._spectra import band_integrate_matrix
 from evhsi_jax.forward import (
     SpectralGrid,
     band_integrate,
@@ -194,7 +194,7 @@ def test_default_lamp_is_kinoton_peak_one():
 def test_stored_reference_spectra_equal_colour_science():
     """The lamp and ColorChecker spectra kept as package data (so that a `Rig()` does
     not import colour-science, ~2 s) are colour-science's own values."""
-    from evhsi_jax._reference_spectra import from_colour, reference_spectra
+    from evhsi_jax._base._reference_spectra import from_colour, reference_spectra
 
     stored, live = reference_spectra(), from_colour()
     assert stored.keys() == live.keys()

@@ -20,13 +20,13 @@ from evhsi_jax._io import (
     DecodeError,
     EventReader,
     _evt3_encode,
-    _jit,
+    _numba,
     encode_evt3_words,
     evt3_word_count,
     write_evt3,
 )
 
-pytestmark = pytest.mark.skipif(not _jit.numba_available(), reason="no numba")
+pytestmark = pytest.mark.skipif(not _numba.numba_available(), reason="no numba")
 
 CHECK = settings(
     max_examples=60,
@@ -106,9 +106,9 @@ def everything(path: Path, chunk_bytes: int) -> dict:
 
 
 def both(path: Path, chunk_bytes: int) -> tuple[dict, dict]:
-    with _jit.use_backend("numba"):
+    with _numba.use_backend("numba"):
         fast = everything(path, chunk_bytes)
-    with _jit.use_backend("numpy"):
+    with _numba.use_backend("numpy"):
         ref = everything(path, chunk_bytes)
     return fast, ref
 
@@ -144,7 +144,7 @@ def test_strict_error_order_follows_chunks(tmp_path):
     path.write_bytes(HEADER3 + np.asarray(words, "<u2").tobytes())
     at = len(HEADER3)
     for name in ("numba", "numpy"):
-        with _jit.use_backend(name):
+        with _numba.use_backend(name):
             # 7: word 3 straddles the cut at byte 7, so it is completed in chunk 1.
             for cb, what in (
                 (10, "reserved word type 0x1"),
@@ -193,7 +193,7 @@ def test_encoders_agree(tmp_path, seed, n, span, t0, triggers, reorder, block):
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(_evt3_encode, "BLOCK_EVENTS", block)
         for name in ("numba", "numpy"):
-            with _jit.use_backend(name):
+            with _numba.use_backend(name):
                 path = tmp_path / f"{name}.raw"
                 write_evt3(path, ev, reorder=reorder)
                 words = encode_evt3_words(ev, reorder=reorder)
@@ -208,22 +208,22 @@ def test_unsorted_stream_encodes_alike():
     shuffled = ev.take(np.random.default_rng(0).permutation(len(ev)))
     words = {}
     for name in ("numba", "numpy"):
-        with _jit.use_backend(name):
+        with _numba.use_backend(name):
             words[name] = encode_evt3_words(shuffled).tolist()
     assert words["numba"] == words["numpy"]
 
 
 def test_backend_switch(monkeypatch):
-    monkeypatch.setenv(_jit.ENV_DISABLE, "1")
-    assert not _jit.use_numba()
-    with _jit.use_backend("numba"):
-        assert _jit.use_numba()
-    monkeypatch.setenv(_jit.ENV_DISABLE, "0")
-    assert _jit.use_numba()
-    with _jit.use_backend("numpy"):
-        assert not _jit.use_numba()
+    monkeypatch.setenv(_numba.ENV_DISABLE, "1")
+    assert not _numba.use_numba()
+    with _numba.use_backend("numba"):
+        assert _numba.use_numba()
+    monkeypatch.setenv(_numba.ENV_DISABLE, "0")
+    assert _numba.use_numba()
+    with _numba.use_backend("numpy"):
+        assert not _numba.use_numba()
     with pytest.raises(ValueError, match="backend"):
-        with _jit.use_backend("cython"):
+        with _numba.use_backend("cython"):
             pass
 
 
@@ -237,7 +237,7 @@ def test_njit_without_a_cache_folder(monkeypatch):
         return real(*args, **kw)
 
     monkeypatch.setattr(numba, "njit", no_cache)
-    f = _jit.njit(lambda a: a + 1)
+    f = _numba.njit(lambda a: a + 1)
     assert f(41) == 42
 
 
@@ -247,7 +247,7 @@ def test_decoded_streams_are_valid(tmp_path):
     path = tmp_path / "v.raw"
     write_evt3(path, random_stream(5, 3000, 10_000, 7, 4))
     for name in ("numba", "numpy"):
-        with _jit.use_backend(name):
+        with _numba.use_backend(name):
             ev = EventReader(path).read()
         again = EventStream(*(getattr(ev, k) for k in COLUMNS[:4]), ev.width,
                             ev.height, *(getattr(ev, k) for k in COLUMNS[4:]))  # fmt: skip
@@ -286,7 +286,7 @@ def test_edges_decode_alike(tmp_path, words, header, expect):
     path.write_bytes(header + np.asarray(words, dtype).tobytes())
     got = {}
     for name in ("numba", "numpy"):
-        with _jit.use_backend(name):
+        with _numba.use_backend(name):
             got[name] = _report(path), _report(path, chunk_bytes=1)
     assert got["numba"] == got["numpy"]
     report = got["numpy"][0][1]

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import evhsi_jax as ev
-from evhsi_jax._shard import (
+from evhsi_jax._base._shard import (
     chunk_groups,
     initialize_distributed,
     pixel_mesh,
@@ -26,8 +26,8 @@ FOUR_DEVICES = textwrap.dedent(
     """
     import jax, jax.random as jr, numpy as np
     import evhsi_jax as ev
-    from evhsi_jax._dynamic import dynamic_scene
-    from evhsi_jax._shard import pixel_mesh
+    from evhsi_jax._model._dynamic import dynamic_scene
+    from evhsi_jax._base._shard import pixel_mesh
 
     assert len(jax.devices()) == 4, jax.devices()
     mesh = pixel_mesh()

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from evhsi_jax import Rig, cube_to_srgb, load_cube, load_scene, save_cube, write_png
-from evhsi_jax._storage import atomic_write
+from evhsi_jax._base._storage import atomic_write
 from evhsi_jax.video import write_comparison_png
 
 CENTRES = Rig().wavelengths_nm  # 402.5 … 757.5 nm, 5 nm channels

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 import evhsi_jax as ev
-from evhsi_jax._dynamic import changed_pixels, dynamic_scene
-from evhsi_jax._stream import (
+from evhsi_jax._model._dynamic import changed_pixels, dynamic_scene
+from evhsi_jax._video._stream import (
     INDEX_NAME,
     LOCK_NAME,
     iter_sweep_cubes,

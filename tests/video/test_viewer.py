@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 import evhsi_jax as ev
-from evhsi_jax._viewer import CubeSource, make_server
+from evhsi_jax._video._viewer import CubeSource, make_server
 
 SCREENSHOTS = Path(__file__).resolve().parents[1] / "output"
 

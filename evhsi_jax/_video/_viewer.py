@@ -31,8 +31,7 @@ from urllib.parse import parse_qs, urlparse
 
 import numpy as np
 
-from ._cubefile import load_cube
-from ._render import cube_to_srgb
+from .._io import cube_to_srgb, load_cube
 
 __all__ = ["CubeSource", "make_server", "PAGE"]
 
@@ -42,8 +41,8 @@ class CubeSource:
     (re-read on each request for the sweep list, so a growing run shows up)."""
 
     def __init__(self, path, truth=None):
+        from ._store import holds_video
         from ._stream import load_sweep_index
-        from ._video_store import holds_video
 
         self.path = Path(path)
         self.truth = None
@@ -90,7 +89,7 @@ class CubeSource:
             if entry.get("file"):
                 cube = load_cube(self.path / entry["file"])["cube"]
             else:
-                from ._video_store import VideoStore
+                from ._store import VideoStore
 
                 cube = VideoStore(self.path, "r").cube_file(entry["position"])["cube"]
             self._cached = (i, cube)

@@ -7,8 +7,7 @@ import io
 
 import numpy as np
 
-from ._spectra import band_integrate
-from ._storage import atomic_write
+from .._base import atomic_write, band_integrate
 
 __all__ = ["cube_to_srgb", "write_png", "write_comparison_png"]
 

@@ -64,20 +64,18 @@ from pathlib import Path
 import numpy as np
 from tqdm.auto import tqdm
 
-from ._calibration import Calibration
-from ._cubefile import load_cube, save_cube
-from ._events import EventStream, check_roi
-from ._io import DEFAULT_CHUNK_BYTES, EventReader, SweepCutter
-from ._reconstruct import (
-    TIMESTAMP_CENTRE_US,
-    ProblemConfig,
-    reconstruct,
-    solver_spec,
+from .._base import TEMP_SUFFIX, atomic_write, read_npz
+from .._io import (
+    DEFAULT_CHUNK_BYTES,
+    EventReader,
+    SweepCutter,
+    cube_to_srgb,
+    load_cube,
+    save_cube,
 )
-from ._render import cube_to_srgb
-from ._rig import Rig
-from ._storage import TEMP_SUFFIX, atomic_write, read_npz
-from ._video_store import VideoStore, is_video_store
+from .._model import Calibration, EventStream, Rig, check_roi
+from .._reconstruct import TIMESTAMP_CENTRE_US, ProblemConfig, reconstruct, solver_spec
+from ._store import VideoStore, is_video_store
 
 __all__ = [
     "StreamResult",
@@ -555,7 +553,7 @@ def reconstruct_sweeps(
 
     **Returns:** a :class:`StreamResult`.
     """
-    from ._shard import is_main_process
+    from .._base import is_main_process
 
     t_run = time.perf_counter()
     out_dir = Path(out_dir)

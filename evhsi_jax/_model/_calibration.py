@@ -21,8 +21,8 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
+from .._base import atomic_write, read_npz
 from ._rig import Rig
-from ._storage import atomic_write, read_npz
 
 __all__ = ["Calibration", "load_calibration"]
 

@@ -30,9 +30,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ._reference_spectra import reference_spectra
-from ._spectra import SpectralGrid, band_integrate
-from ._storage import atomic_write, read_npz
+from .._base import (
+    SpectralGrid,
+    atomic_write,
+    band_integrate,
+    read_npz,
+    reference_spectra,
+)
 
 __all__ = ["Scene", "load_scene", "BUILTIN_SCENES", "parse_size"]
 

@@ -11,7 +11,7 @@ the main thread reads the file, predicts states and applies the time fix-ups in 
 The wrap count and the running maxima are settled in `apply_time`, so the result — and
 the report — are the same as decoding the chunks one after the other.
 
-With the compiled kernels (`_jit`, the default) a chunk is decoded in one sequential
+With the compiled kernels (`_numba`, the default) a chunk is decoded in one sequential
 pass on the calling thread instead (the state goes in and comes out of the kernel), and
 `decode_range` decodes a whole byte range in one call into arrays sized once, which
 avoids concatenating chunks; `workers` then has no effect.
@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import _jit
+from . import _numba
 from ._chunks import DecodedChunk, ScannedChunk, apply_time, expand_events
 from ._evt2 import Evt2State, carry_evt2_state, scan_evt2_words
 from ._evt3_decode import Evt3State, carry_evt3_state, scan_evt3_words
@@ -136,7 +136,7 @@ def decode_chunks(
     **Returns:** an iterator of `(offset, nbytes, state_before, chunk)`.
     """
     words = _read_words(path, codec, offset, stop, chunk_bytes, report, strict)
-    if _jit.use_numba():
+    if _numba.use_numba():
         yield from _decode_chunks_jit(
             path, codec, words, state, report, width, height, strict, expand, snapshots
         )
@@ -308,7 +308,7 @@ def decode_range(
     once, no concatenation); results, report and strict-mode errors are those of
     decoding it in chunks of `chunk_bytes`.
     """
-    if not _jit.use_numba():
+    if not _numba.use_numba():
         chunks = decode_chunks(
             path, codec, offset, stop, state, report, chunk_bytes=chunk_bytes,
             width=width, height=height, strict=strict, workers=workers,

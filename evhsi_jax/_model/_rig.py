@@ -34,13 +34,13 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._spectra import (
+from .._base import (
     SpectralGrid,
+    atomic_write,
     default_camera_response,
     default_lamp_spectrum,
     resample,
 )
-from ._storage import atomic_write
 
 __all__ = [
     "Rig",

@@ -25,14 +25,19 @@ from jax.sharding import PartitionSpec as P
 from jaxtyping import PRNGKeyArray
 from tqdm.auto import tqdm
 
-from . import _shard
-from ._events import EventStream
-from ._illumination import TABLE_STEP_NM, BandTable, band_table, lookup
-from ._limits import check_fits
-from ._rig import Rig
-from ._scenes import Scene
-from ._sensor import exact_events_scan, initial_state, photoreceptor_lowpass
-from ._spectra import band_integrate_matrix
+from .._base import band_integrate_matrix, check_fits, shard
+from .._model import (
+    TABLE_STEP_NM,
+    BandTable,
+    EventStream,
+    Rig,
+    Scene,
+    band_table,
+    exact_events_scan,
+    initial_state,
+    lookup,
+    photoreceptor_lowpass,
+)
 
 __all__ = ["simulate", "SimulationInfo", "time_oversampling", "threshold_maps"]
 
@@ -337,7 +342,7 @@ def simulate(
         unit="chunk",
         desc=f"simulate {h}x{w}x{sweeps}",
     )
-    groups = _shard.chunk_groups(n_chunks, mesh)  # one chunk each without a mesh
+    groups = shard.chunk_groups(n_chunks, mesh)  # one chunk each without a mesh
     group_states = [None] * len(groups)
     lowpass_hz = (
         jnp.asarray(fx.photoreceptor_hz, dtype) if fx.photoreceptor_hz > 0 else None
@@ -507,7 +512,7 @@ def _log_intensity_fn(mesh, palette: bool, lo_nm: float):
         log_i = _log_intensity(rig, tab, lo_nm, t_local[0], offsets[0], spec, labels[0])
         return log_i[None]
 
-    rows = P(_shard.PIXELS)
+    rows = P(shard.PIXELS)
     mapped = jax.shard_map(
         local,
         mesh=mesh,
@@ -525,7 +530,7 @@ def _scan_fn(mesh, fresh: bool):
         out, state = _trigger_scan(rig, log_i[0], t_local[0], thr_on[0], thr_off[0], state)
         return jax.tree.map(lambda a: a[None], (*out, state))
 
-    rows = P(_shard.PIXELS)
+    rows = P(shard.PIXELS)
     mapped = jax.shard_map(
         local,
         mesh=mesh,
@@ -560,24 +565,24 @@ def scan_chunks_sharded(
     """
     palette = np.ndim(spectra) == 2
     fresh = state is None
-    g = functools.partial(_shard.to_global, mesh)
-    rig_r = _shard.replicated(mesh, rig)
+    g = functools.partial(shard.to_global, mesh)
+    rig_r = shard.replicated(mesh, rig)
     log_i = _log_intensity_fn(mesh, palette, float(lo_nm))(
         rig_r,
-        _shard.replicated(mesh, table_values),
-        _shard.to_global(mesh, spectra, sharded=False) if palette else g(spectra),
+        shard.replicated(mesh, table_values),
+        shard.to_global(mesh, spectra, sharded=False) if palette else g(spectra),
         g(t_local),
         g(offsets),
         g(labels),
     )
     if fresh:  # a placeholder with the right leading axis; not read
-        state = (g(np.zeros((_shard.mesh_size(mesh), 1), np.float32)),) * 3
+        state = (g(np.zeros((shard.mesh_size(mesh), 1), np.float32)),) * 3
     fired, tc, up, new_state = _scan_fn(mesh, fresh)(
         rig_r, log_i, g(t_local), g(thr_on), g(thr_off), state
     )
     return (
-        _shard.to_host(fired),
-        _shard.to_host(tc),
-        _shard.to_host(up),
+        shard.to_host(fired),
+        shard.to_host(tc),
+        shard.to_host(up),
         new_state,
     )

@@ -4,7 +4,7 @@ The xenon lamp of the default rig (Kinoton 75P) and the ColorChecker (N Ohta) co
 from colour-science's datasets (BSD-3-Clause). Importing `colour` takes ~2 s (it loads
 its plotting stack), which every `Rig()` paid for the lamp; the arrays are therefore
 stored in `reference_spectra.npz` beside this module, written by
-`python -m evhsi_jax._reference_spectra` from the installed colour-science, and
+`python -m evhsi_jax._base._reference_spectra` from the installed colour-science, and
 `tests/forward/test_spectra.py` checks they still equal colour's values.
 """
 

@@ -217,7 +217,7 @@ def default_lamp_spectrum(wavelengths_nm) -> np.ndarray:
     """A xenon-arc lamp spectrum E(λ), normalised to peak 1 on the given wavelengths.
 
     The Kinoton 75P xenon cinema projector lamp shipped with colour-science (380–780 nm,
-    2 nm; stored with the package, :mod:`evhsi_jax._reference_spectra`), linearly
+    2 nm; stored with the package, :mod:`evhsi_jax._base._reference_spectra`), linearly
     interpolated.
     """
     wl, v = _kinoton()

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from ._storage import atomic_write, read_npz, scalar_int
+from .._base import atomic_write, read_npz, scalar_int
 
 __all__ = ["EventStream", "check_roi"]
 

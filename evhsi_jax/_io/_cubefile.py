@@ -14,7 +14,7 @@
   from other software load too (`wavelength` in nm or µm).
 - `.zarr`: a Zarr store (through xarray) holding one cube as the variable
   `reflectance` (y, x, wavelength) with a `wavelength` coordinate in nm. The per-sweep
-  *video* store, with a `time` axis, is written by :mod:`evhsi_jax._stream` and is
+  *video* store, with a `time` axis, is written by :mod:`evhsi_jax._video._stream` and is
   read sweep by sweep with :func:`evhsi_jax.video.iter_sweep_cubes`.
 
 All writes are whole or nothing: every file of a cube is written under a temporary
@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._storage import atomic_write, one_line, read_npz
+from .._base import atomic_write, one_line, read_npz
 
 __all__ = ["save_cube", "load_cube", "CUBE_SUFFIXES", "ENVI_IGNORE"]
 

@@ -12,7 +12,7 @@ a damaged chunk fails to read instead of returning wrong numbers):
   µs on the recording's clock), with `sweep`, `stop_us`, `events` and
   `pixels_solved` per time step;
 - root attribute `evhsi`: the run's index (the same object as a sweep folder's
-  `index.json`, see :mod:`evhsi_jax._stream`); consolidated metadata, refreshed with
+  `index.json`, see :mod:`evhsi_jax._video._stream`); consolidated metadata, refreshed with
   the index (at most once a second while running, and at the end).
 
 **Crash-safe and resumable.** zarr-python writes every chunk and metadata document
@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._storage import one_line
+from .._base import one_line
 
 __all__ = ["VideoStore", "is_video_store", "holds_video"]
 

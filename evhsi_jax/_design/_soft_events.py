@@ -49,10 +49,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from .._illumination import BandTable, band_table, lookup
+from .._model import BandTable, Rig, band_table, exact_events_scan, lookup
 from .._reconstruct import PixelEvents, ProblemConfig, pixel_system
-from .._rig import Rig
-from .._sensor import exact_events_scan
 
 __all__ = ["StructureConfig", "band_grid", "pixel_traces", "hard_events", "pixel_qp"]
 

@@ -1,0 +1,454 @@
+"""Gray-chart data and the per-pixel quantities measured from it.
+
+:func:`chart_data` turns a chart capture into per-pixel event lists with the chart's
+reflectance; :func:`chart_residuals` are the forward model's own equations at the
+observed event times (module :mod:`._fit` explains the residual); and
+:func:`threshold_maps_from_chart` gives every pixel its own ON and OFF threshold in
+closed form, with the optics' blur (a Gaussian PSF searched on a grid) and stray events
+accounted for.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from .._model import (
+    BandTable,
+    EventStream,
+    Rig,
+    Scene,
+    band_table,
+    lookup,
+    photoreceptor_lowpass,
+)
+from .._reconstruct import group_pixels
+
+__all__ = [
+    "ChartData",
+    "chart_data",
+    "chart_log_steps",
+    "chart_residuals",
+    "spectral_traces",
+    "threshold_maps_from_chart",
+]
+
+
+@dataclasses.dataclass(frozen=True)
+class ChartData:
+    """Padded event lists of chart pixels with their known reflectance (host arrays).
+
+    `t_us`, `polarity`, `mask`: `(n, k)`; `column`, `pixel`, `spectrum`: `(n,)`;
+    `spectra`: the chart's distinct reflectances `(S, F)` on the rig's fine grid
+    (F = M × sub), indexed by `spectrum`; `width`: sensor width.
+    """
+
+    t_us: np.ndarray
+    polarity: np.ndarray
+    mask: np.ndarray
+    column: np.ndarray
+    pixel: np.ndarray
+    spectrum: np.ndarray
+    spectra: np.ndarray
+    width: int
+
+    def subset(self, index) -> ChartData:
+        """The pixels `index` (rows of the per-pixel arrays)."""
+        return dataclasses.replace(
+            self,
+            t_us=self.t_us[index],
+            polarity=self.polarity[index],
+            mask=self.mask[index],
+            column=self.column[index],
+            pixel=self.pixel[index],
+            spectrum=self.spectrum[index],
+        )
+
+    @property
+    def reflectance(self) -> np.ndarray:
+        """Each pixel's fine reflectance, `(n, F)`."""
+        return self.spectra[self.spectrum]
+
+    @property
+    def events(self) -> int:
+        return int(self.mask.sum())
+
+
+def chart_data(
+    events: EventStream,
+    chart: Scene,
+    rig: Rig,
+    *,
+    t_start_us: int | None = None,
+    rows_per_label: int | None = None,
+    max_events: int = 256,
+) -> ChartData:
+    """Select chart pixels and pad their events into one array.
+
+    **Arguments:**
+
+    - `events`: the capture; `chart`: the chart scene (same size as the sensor).
+    - `rig`: for the channel grid.
+    - `t_start_us`: sweep phase 0 (default: first trigger, else 0).
+    - `rows_per_label`: keep at most this many rows of each chart patch per column
+      (evenly spread) to bound the work; `None` keeps all pixels.
+    - `max_events`: at most this many events per pixel (the earliest).
+    """
+    if (chart.height, chart.width) != (events.height, events.width):
+        raise ValueError(
+            f"the chart is {chart.height}x{chart.width} but the capture is "
+            f"{events.height}x{events.width}"
+        )
+    if t_start_us is None:
+        t_start_us = int(events.trigger_t_us[0]) if events.trigger_t_us.size else 0
+    keep = np.ones((chart.height, chart.width), bool)
+    if rows_per_label is not None:
+        keep[:] = False
+        for lab in np.unique(chart.labels):
+            rows = np.nonzero((chart.labels == lab).any(axis=1))[0]
+            pick = rows[
+                np.linspace(0, rows.size - 1, min(rows_per_label, rows.size))
+                .round()
+                .astype(int)
+            ]
+            keep[pick] |= chart.labels[pick] == lab
+    pix = events.y.astype(np.int64) * events.width + events.x
+    sel = keep.reshape(-1)[pix]
+    sub = events.take(np.nonzero(sel)[0])
+    batches, counts, _ = group_pixels(
+        sub,
+        t_start_us=t_start_us,
+        chunk_pixels=events.width * events.height,
+        min_chunk=1,
+        max_events=max_events,
+    )
+    if not batches:
+        raise ValueError("the chart capture has no events on the chart pixels")
+    k = max(b.t_us.shape[1] for b in batches)
+    parts = []
+    for b in batches:
+        v = b.pixel >= 0
+        pad = ((0, 0), (0, k - b.t_us.shape[1]))
+        parts.append(
+            (
+                np.pad(b.t_us[v], pad),
+                np.pad(b.polarity[v], pad),
+                np.pad(b.mask[v], pad),
+                b.column[v],
+                b.pixel[v],
+            )
+        )
+    t, p, m, col, px = (np.concatenate(z) for z in zip(*parts))
+    # The chart's reflectance is known finely: use it on the simulator's fine grid, so
+    # reflectance slopes inside a channel (steep at the blue end of white paper) do not
+    # bias the fit of the time axis.
+    fine = chart.palette_on(rig.grid.fine_edges_nm)
+    labels = chart.labels.reshape(-1)[px]
+    used, spectrum = np.unique(labels, return_inverse=True)
+    return ChartData(t, p, m, col, px, spectrum.reshape(-1), fine[used], events.width)
+
+
+def spectral_traces(rig: Rig, spectra, overlap: BandTable | None = None) -> BandTable:
+    """Intensity above c of each chart spectrum vs band centre: `(n_λ, S)` table.
+
+    The chart's few spectra are known, so their traces over λc are tabulated once (the
+    fine band table times each fine reflectance); a residual then needs a 1-D
+    interpolation instead of a 360-wide dot product. Differentiable in the rig's FWHM,
+    D and E through the band table. `overlap`: the rig's :func:`band_overlap`, when the
+    caller keeps the band fixed and has it already (the joint fit: it is most of the
+    cost otherwise); then D and E are still differentiable, the FWHM is not.
+    """
+    if overlap is None:
+        table = band_table(rig)
+        return BandTable(
+            table.values @ jnp.asarray(spectra, table.values.dtype).T,
+            table.lo_nm,
+            table.step_nm,
+        )
+    weight = rig.camera_response * rig.lamp
+    gain = 1.0 / jnp.max(overlap.values @ weight)
+    weighted = weight[:, None] * jnp.asarray(spectra, overlap.values.dtype).T
+    return BandTable(gain * (overlap.values @ weighted), overlap.lo_nm, overlap.step_nm)
+
+
+def chart_log_steps(rig: Rig, data, traces=None):
+    """Model log steps of every chart event, shape `(n, k)` (0 in padding).
+
+    `data` is a :class:`ChartData`, or the tuple `(t, polarity, mask, column,
+    spectrum)` of JAX arrays (then `traces` is required). Differentiable in the rig.
+    """
+    if isinstance(data, ChartData):
+        traces = traces if traces is not None else spectral_traces(rig, data.spectra)
+        data = _device(data, rig.fwhm_nm.dtype)
+    elif traces is None:
+        raise ValueError("pass the spectral traces with device arrays")
+    t, _, m, col, s_idx = data
+    offsets = rig.column_offsets(_width(rig, col))[col][:, None]
+    base = rig.baseline_level
+    # References: the recording start for the first event, then τ_{k-1} + η.
+    t_ref = jnp.concatenate(
+        [jnp.zeros_like(t[:, :1]), t[:, :-1] + rig.refractory_us], axis=1
+    )
+
+    def level(tt):
+        # Only each pixel's own chart spectrum is interpolated: the linearisation
+        # that Levenberg–Marquardt keeps then holds (n, k) arrays, not (n, k, S).
+        a = lookup(
+            traces, rig.band_centre_nm(tt, offsets), order=3, column=s_idx[:, None]
+        )
+        return jnp.log(jnp.maximum(a, 0.0) + base)
+
+    hz = rig.effects.photoreceptor_hz
+    if hz > 0:  # a known photoreceptor low-pass: the events see the filtered level
+        ftab = _lowpassed_traces(rig, traces, hz)
+
+        def level(tt):
+            return lookup(
+                ftab, rig.band_centre_nm(tt, offsets), order=3, column=s_idx[:, None]
+            )
+
+    return jnp.where(m, level(t) - level(t_ref), 0.0)
+
+
+def _lowpassed_traces(rig: Rig, traces: BandTable, cutoff_hz: float) -> BandTable:
+    """The chart spectra's log-intensity traces through the photoreceptor low-pass
+    (:func:`evhsi_jax.forward.photoreceptor_lowpass`), tabulated over λc like the
+    traces: time and λc are proportional along the sweep (one table step is
+    `step / (βω)` µs), so the filter runs along the table. Exact for the chart (its
+    spectra are known); differentiable in the rig."""
+    speed = rig.band_speed_nm_per_us
+    inten = jnp.maximum(traces.values, 0.0) + rig.baseline_rel
+    filt = photoreceptor_lowpass(
+        jnp.log(inten + rig.log_eps),
+        traces.step_nm / speed,
+        cutoff_hz,
+        rig.log_eps,
+    )
+    return BandTable(filt, traces.lo_nm, traces.step_nm)
+
+
+def chart_residuals(rig: Rig, data, traces=None, *, per_pixel: bool = False):
+    """Event residuals in threshold units, shape `(n, k)` (0 in padding).
+
+    $r_k = d_k / C - σ_k$ with $d_k$ the model log step (:func:`chart_log_steps`): 0
+    when the model explains event k exactly. Dividing by C (rather than residuals
+    $d_k - σ_kC$ in log units) matters: in log units a rig with huge constant light
+    and tiny thresholds would explain any events with tiny residuals; in threshold
+    units the observed, geometric spacing of event levels rules it out.
+
+    With `per_pixel`, each pixel's own ON and OFF thresholds are profiled out:
+    $1/C_p = \\sum σ_k d_k / \\sum d_k^2$ over the pixel's events of one polarity
+    (the least-squares value), so threshold mismatch cannot bias the other parameters.
+    """
+    d = chart_log_steps(rig, data, traces)
+    pol = data.polarity if isinstance(data, ChartData) else data[1]
+    mask = data.mask if isinstance(data, ChartData) else data[2]
+    pol = jnp.asarray(pol).astype(d.dtype)
+    pos = jnp.asarray(mask) & (pol > 0)
+    neg = jnp.asarray(mask) & (pol < 0)
+    if per_pixel:
+
+        def inv_c(sel, sign):
+            num = jnp.sum(jnp.where(sel, sign * d, 0.0), 1, keepdims=True)
+            den = jnp.sum(jnp.where(sel, d * d, 0.0), 1, keepdims=True)
+            ok = den > 0
+            return jnp.where(ok, num / jnp.where(ok, den, 1.0), 0.0)
+
+        u = jnp.where(pos, inv_c(pos, 1.0), inv_c(neg, -1.0))
+    else:
+        u = jnp.where(pol > 0, 1.0 / rig.threshold_on, 1.0 / rig.threshold_off)
+    return jnp.where(pos | neg, d * u - pol, 0.0)
+
+
+def _with_column_offsets(rig: Rig, width: int) -> Rig:
+    """`rig` with its column offsets explicit (one per column)."""
+    if rig.column_offsets_us is not None:
+        return rig
+    return rig.with_leaves(column_offsets_us=rig.column_offsets(width))
+
+
+def _width(rig, col):
+    if rig.column_offsets_us is None:
+        raise ValueError("calibration needs explicit column offsets (one per column)")
+    return rig.column_offsets_us.shape[0]
+
+
+def _device(d: ChartData, dtype):
+    return (
+        jnp.asarray(d.t_us, dtype),
+        jnp.asarray(d.polarity, jnp.int32),
+        jnp.asarray(d.mask),
+        jnp.asarray(d.column),
+        jnp.asarray(d.spectrum),
+    )
+
+
+_log_steps_jit = eqx.filter_jit(chart_log_steps)
+
+
+def _log_steps(rig: Rig, data: ChartData, block: int = 4096):
+    """Model log steps of every chart event in blocks of pixels, `(n, k)` (host).
+
+    Every block is padded to `block` pixels (masked), so one compilation serves all.
+    """
+    traces = spectral_traces(rig, data.spectra)
+    dtype = rig.fwhm_nm.dtype
+    n = data.t_us.shape[0]
+    block = min(block, n)
+    out = []
+    for c0 in range(0, n, block):
+        part = data.subset(slice(c0, c0 + block))
+        pad = block - part.t_us.shape[0]
+        if pad:
+            part = dataclasses.replace(
+                part,
+                **{
+                    k: np.pad(
+                        getattr(part, k),
+                        ((0, pad),) + ((0, 0),) * (getattr(part, k).ndim - 1),
+                    )
+                    for k in ("t_us", "polarity", "mask", "column", "pixel", "spectrum")
+                },
+            )
+        steps = np.asarray(
+            _log_steps_jit(rig, _device(part, dtype), traces), np.float64
+        )
+        out.append(steps[: block - pad])
+    return np.concatenate(out)
+
+
+PSF_GRID_PX = (0.0, 0.25, 0.4, 0.5, 0.6, 0.75, 1.0, 1.5)  # blur σ searched, pixels
+
+
+def _rms_own_thresholds(steps, data: ChartData, c_on, c_off) -> np.ndarray:
+    """Per-pixel RMS residual (threshold units) with the pixel's own thresholds."""
+    c_px = np.where(data.polarity > 0, c_on[:, None], c_off[:, None])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = np.where(data.mask, steps / c_px - data.polarity, np.nan)
+        return np.sqrt(np.nanmean(r**2, axis=1))
+
+
+def _closed_form_thresholds(steps: np.ndarray, data: ChartData):
+    """Per-pixel C_on, C_off from model log steps: the least-squares values of the
+    threshold-unit residuals, $C = \\sum d_k^2 / \\sum σ_k d_k$ (NaN where a pixel has
+    no event of that polarity)."""
+    pos = data.mask & (data.polarity > 0)
+    neg = data.mask & (data.polarity < 0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        c_on = (steps**2 * pos).sum(1) / (steps * pos).sum(1)
+        c_off = (steps**2 * neg).sum(1) / (-steps * neg).sum(1)
+    c_on[~(c_on > 0) | (pos.sum(1) == 0)] = np.nan
+    c_off[~(c_off > 0) | (neg.sum(1) == 0)] = np.nan
+    return c_on, c_off
+
+
+def threshold_maps_from_chart(
+    events: EventStream,
+    chart: Scene,
+    rig: Rig,
+    *,
+    t_start_us: int | None = None,
+    psf_sigmas_px=PSF_GRID_PX,
+    return_psf: bool = False,
+):
+    """Per-pixel ON/OFF thresholds with the global parameters fixed (closed form).
+
+    Each event's model log step $d_k = \\log I(τ_k) - \\log I(ρ_k)$ is computed from the
+    known reflectance; a pixel's $C_{on}$ is the mean of $d_k$ over its ON events and
+    $C_{off}$ the mean of $-d_k$ over its OFF events (the least-squares solution of its
+    residuals).
+
+    **The optics' blur.** On a patch border the lens mixes two grays; a pixel there
+    sees a level the chart's labels do not give, and its closed-form thresholds absorb
+    the difference (per-crossing threshold noise hides the misfit in its own
+    residual). The chart is therefore seen through a Gaussian PSF whose σ is chosen
+    from `psf_sigmas_px` by the total squared residual of all pixels with their own
+    thresholds: pooled over every border pixel, the blur is well determined although
+    no single pixel shows it. `psf_sigmas_px=(0.0,)` turns this off.
+
+    A pixel whose RMS residual with its own thresholds is still an outlier (> 2× the
+    median and > median + 8 robust σ) does not follow the chart's model (dirt, a
+    defect) and gets the rig's global pair, as do pixels without ON (OFF) events.
+
+    **Returns:** `(threshold_on, threshold_off)` maps, each `(H, W)`; with
+    `return_psf` also the chosen σ (pixels).
+    """
+    h, w = events.height, events.width
+    rig = _with_column_offsets(rig, w)
+    on = np.full(h * w, float(rig.threshold_on))
+    off = np.full(h * w, float(rig.threshold_off))
+    data = chart_data(events, chart, rig, t_start_us=t_start_us, rows_per_label=None)
+    best = None
+    seen = [_seen_through(data, chart.blurred(float(v)), rig) for v in psf_sigmas_px]
+    # One padded spectra count (a power of two) for every blur: one compilation.
+    rows = 1 << max(max(d.spectra.shape[0] for d in seen) - 1, 1).bit_length()
+    for sigma, d in zip(psf_sigmas_px, seen):
+        d = dataclasses.replace(
+            d, spectra=np.pad(d.spectra, ((0, rows - d.spectra.shape[0]), (0, 0)))
+        )
+        steps = _log_steps(rig, d)
+        c_on, c_off = _closed_form_thresholds(steps, d)
+        rms_px = _rms_own_thresholds(steps, d, c_on, c_off)
+        ssr = float(np.nansum(rms_px**2 * d.mask.sum(1)))
+        if best is None or ssr < best[0]:
+            best = (ssr, float(sigma), d, steps, c_on, c_off, rms_px)
+    _, psf, d, steps, c_on, c_off, rms_px = best
+    c_on, c_off, rms_px = _refit_without_stray_events(rig, d, steps, c_on, c_off, rms_px)
+    med = np.nanmedian(rms_px)
+    mad = np.nanmedian(np.abs(rms_px - med))
+    misfit = rms_px > max(2.0 * med, med + 8.0 * 1.4826 * mad, 0.02)
+    good_on = np.isfinite(c_on) & ~misfit
+    good_off = np.isfinite(c_off) & ~misfit
+    on[data.pixel[good_on]] = c_on[good_on]
+    off[data.pixel[good_off]] = c_off[good_off]
+    maps = on.reshape(h, w), off.reshape(h, w)
+    return (*maps, psf) if return_psf else maps
+
+
+def _refit_without_stray_events(rig: Rig, d: ChartData, steps, c_on, c_off, rms_px):
+    """Closed-form thresholds again for pixels with a stray event — one whose residual
+    with the pixel's own thresholds is beyond max(0.5, 6 robust σ) thresholds: a
+    background event inside the lit interval, or a crossing the model misses — with
+    that event removed from the pixel's list (so the next event refers to the one
+    before it). One noise event would otherwise cost the whole pixel its own
+    thresholds (it would fail the misfit test); with a gray chart recorded for many
+    sweeps most pixels catch one. `steps` are `d`'s model log steps."""
+    c_px = np.where(d.polarity > 0, c_on[:, None], c_off[:, None])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = np.where(d.mask, steps / c_px - d.polarity, 0.0)
+    r = np.nan_to_num(r, nan=np.inf)
+    sigma = 1.4826 * float(np.median(np.abs(r[d.mask]))) if d.mask.any() else 0.0
+    stray = d.mask & (np.abs(r) > max(0.5, 6.0 * sigma))
+    rows = np.flatnonzero(stray.any(axis=1) & (d.mask.sum(axis=1) > stray.sum(axis=1)))
+    if rows.size == 0:
+        return c_on, c_off, rms_px
+    sub = d.subset(rows)
+    keep = sub.mask & ~stray[rows]
+    # Compact each row's remaining events to the front (padding stays at the end).
+    order = np.argsort(~keep, axis=1, kind="stable")
+    take = lambda a: np.take_along_axis(a, order, axis=1)  # noqa: E731
+    sub = dataclasses.replace(
+        sub,
+        t_us=take(np.where(keep, sub.t_us, 0)),
+        polarity=take(np.where(keep, sub.polarity, 0)),
+        mask=take(keep),
+    )
+    steps2 = _log_steps(rig, sub)
+    on2, off2 = _closed_form_thresholds(steps2, sub)
+    rms2 = _rms_own_thresholds(steps2, sub, on2, off2)
+    c_on, c_off, rms_px = c_on.copy(), c_off.copy(), rms_px.copy()
+    c_on[rows], c_off[rows], rms_px[rows] = on2, off2, rms2
+    return c_on, c_off, rms_px
+
+
+def _seen_through(data: ChartData, chart: Scene, rig: Rig) -> ChartData:
+    """`data` with each pixel's reflectance taken from `chart` (same geometry)."""
+    labels = chart.labels.reshape(-1)[data.pixel]
+    used, spectrum = np.unique(labels, return_inverse=True)
+    fine = chart.palette_on(rig.grid.fine_edges_nm)[used]
+    return dataclasses.replace(data, spectra=fine, spectrum=spectrum.reshape(-1))
+
+
