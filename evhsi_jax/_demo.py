@@ -40,7 +40,7 @@ def run_demo(out: Path, size: str = "96x144", quiet: bool = False) -> dict:
     )
     t0 = time.perf_counter()
     events, info = simulate(
-        scene, rig, sweeps=1, progress=not quiet, return_info=True, key=jr.key(rig.seed)
+        scene, rig, sweeps=1, progress=not quiet, return_info=True, key=jr.key(int(rig.seed))
     )
     t_sim = time.perf_counter() - t0
     truth = scene.truth_cube(rig.grid)
@@ -72,7 +72,7 @@ def run_demo(out: Path, size: str = "96x144", quiet: bool = False) -> dict:
 
     # The same sensor (same key: same per-pixel thresholds) looks at the gray chart.
     chart = load_scene("gray-chart", (h, w))
-    gray = simulate(chart, rig, sweeps=2, key=jr.key(rig.seed))
+    gray = simulate(chart, rig, sweeps=2, key=jr.key(int(rig.seed)))
     t0 = time.perf_counter()
     cal = calibrate(gray, chart, Rig(), rows_per_label=2)
     save_calibration(out / "calibration.json", cal, comment="evhsi demo, gray chart")

@@ -45,7 +45,9 @@ def _add_rig(p):
 def _load_rig(path):
     from ._model import Rig
 
-    return Rig.load(path) if path else Rig()
+    # `rig`, `simulate` and `calibrate --init` use no per-pixel maps: a calibration
+    # file's rig is read alone (reconstruct takes `--calib`, maps and all).
+    return Rig.load(path, maps="ignore") if path else Rig()
 
 
 def _out_path(path: str, suffixes: tuple[str, ...], what: str) -> Path:
@@ -144,7 +146,7 @@ def cmd_simulate(args):
     if args.sweeps < 1:
         raise ValueError(f"--sweeps must be >= 1, got {args.sweeps}")
     scene = load_scene(args.scene, parse_size(args.size))
-    seed = rig.seed if args.seed is None else args.seed
+    seed = int(rig.seed) if args.seed is None else args.seed
     if seed < 0:
         raise ValueError(f"--seed must be >= 0, got {seed}")
     t0 = time.perf_counter()
@@ -248,6 +250,7 @@ def cmd_reconstruct(args):
         progress=not args.quiet,
         return_info=True,
         mesh=_mesh(args.devices),
+        deblur=_DEBLUR[args.deblur],
     )
     elapsed = time.perf_counter() - t0
     notes = []
@@ -322,6 +325,9 @@ def _mesh(devices):
     return pixel_mesh(None if devices == 0 else devices)
 
 
+_DEBLUR = {"auto": None, "on": True, "off": False}
+
+
 def _run_sweeps(args, cal, out, roi, stop):
     from ._video import reconstruct_sweeps
 
@@ -340,6 +346,7 @@ def _run_sweeps(args, cal, out, roi, stop):
         idle_timeout_s=args.idle_timeout,
         should_stop=lambda: stop["asked"],
         roi=roi,
+        deblur=_DEBLUR[args.deblur],
     )
 
 
@@ -575,7 +582,7 @@ def cmd_calibrate(args):
             f"{'per-pixel maps':18s} {'':>12s} ON sd {res.threshold_on_map.std():.4f}, "
             f"OFF sd {res.threshold_off_map.std():.4f} -> {cfg['threshold_map']}"
         )
-    fx = rig.effects
+    fx = rig.effects.floats()
     print(
         f"{'sensor noise':18s} {'':>12s} per-crossing threshold "
         f"{fx.threshold_noise:.4f} log, timestamp jitter {fx.timestamp_jitter_us:.2f} "
@@ -804,6 +811,14 @@ def build_parser() -> argparse.ArgumentParser:
         type=int,
         default=None,
         help="start of the first sweep in µs (default: first trigger, else 0)",
+    )
+    p.add_argument(
+        "--deblur",
+        choices=sorted(_DEBLUR),
+        default="auto",
+        help="undo the optics' blur (the calibration's psf_sigma_px, pixels) by "
+        "Wiener deconvolution per channel: auto (default) when the calibration "
+        "measured one, on, off",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_strict(p)

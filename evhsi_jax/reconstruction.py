@@ -2,10 +2,12 @@
 
 Public namespace `evhsi_jax.reconstruction`; the implementation lives in private modules."""
 
+from ._reconstruct import DEFAULT_WIENER_REG as DEFAULT_WIENER_REG
 from ._reconstruct import SOLVERS as SOLVERS
 from ._reconstruct import ProblemConfig as ProblemConfig
 from ._reconstruct import ReconstructionInfo as ReconstructionInfo
 from ._reconstruct import SolverSpec as SolverSpec
+from ._reconstruct import deblur_cube as deblur_cube
 from ._reconstruct import kkt_residual as kkt_residual
 from ._reconstruct import pixel_system as pixel_system
 from ._reconstruct import reconstruct as reconstruct
@@ -22,4 +24,6 @@ __all__ = [
     "pixel_system",
     "spectral_prior_matrix",
     "kkt_residual",
+    "deblur_cube",
+    "DEFAULT_WIENER_REG",
 ]

@@ -93,7 +93,8 @@ def run_case(sensor: dict, size, seed: int, band_known: bool = True) -> dict:
     gray = ev.simulate(chart, true, sweeps=CHART_SWEEPS, key=key)
     truth = scene.truth_cube(true.grid)
     # What reaches the sensor: the scene through the optics (the same cube when the
-    # sensor has no PSF). A per-pixel method cannot undo the blur.
+    # sensor has no PSF). `reconstruct` deblurs by the calibrated PSF (a Wiener filter:
+    # part of the blur is undone, the rest is lost to noise).
     optics = scene.blurred(true.effects.psf_sigma_px).truth_cube(true.grid)
     t0 = time.perf_counter()
     try:
@@ -102,7 +103,7 @@ def run_case(sensor: dict, size, seed: int, band_known: bool = True) -> dict:
         return {"error": str(err)}
     cal = res.calibration
     old = ev.Calibration(
-        res.rig.replace_static(effects=ev.Rig().effects),
+        res.rig.replace_host(**ev.Rig().effects.as_dict()),
         res.threshold_on_map,
         res.threshold_off_map,
     )

@@ -225,9 +225,9 @@ class CalibrationResult:
                 "pixels_used": self.pixels_used,
                 "outlier_pixels": self.outlier_pixels,
                 "hot_pixels": int(0 if self.hot_pixels is None else self.hot_pixels.sum()),
-                "threshold_noise": e.threshold_noise,
-                "timestamp_jitter_us": e.timestamp_jitter_us,
-                "noise_rate_hz": self.rig.noise_rate_hz,
+                "threshold_noise": float(e.threshold_noise),
+                "timestamp_jitter_us": float(e.timestamp_jitter_us),
+                "noise_rate_hz": float(self.rig.noise_rate_hz),
                 "psf_sigma_px": self.psf_sigma_px,
                 "seconds": self.seconds,
                 "not_measured": "photoreceptor_hz (kept from the initial rig)",
@@ -610,13 +610,11 @@ def _fit_chart_float64(
             f"{MAX_RMS_RESIDUAL}); is the capture a gray chart of the given size, "
             "lit by the sweep?"
         )
-    fitted = fitted.replace_static(
-        effects=dataclasses.replace(
-            fitted.effects,
-            threshold_noise=noise["threshold_noise"],
-            timestamp_jitter_us=noise["timestamp_jitter_us"],
-        ),
+    fitted = fitted.replace_host(
+        threshold_noise=noise["threshold_noise"],
+        timestamp_jitter_us=noise["timestamp_jitter_us"],
         noise_rate_hz=bg_rate,
+        **({} if psf is None else {"psf_sigma_px": psf}),
     )
     return CalibrationResult(
         rig=fitted,
@@ -692,6 +690,5 @@ def apply_spectral_correction(rig: Rig, factors) -> Rig:
     f = np.asarray(factors, np.float64)
     if f.shape != (rig.channels,) or np.any(~np.isfinite(f)) or np.any(f <= 0):
         raise ValueError(f"need {rig.channels} positive finite correction factors")
-    if rig.channel_gain is not None:
-        f = f * np.asarray(rig.channel_gain)
-    return rig.replace_static(channel_gain=tuple(float(v) for v in f))
+    f = f * np.asarray(rig.channel_gain)  # (ones when there is no correction yet)
+    return rig.replace_host(channel_gain=[float(v) for v in f])

@@ -76,7 +76,7 @@ def evaluate_design(
         raise ValueError("threshold_spread must be >= 0")
     rig = params.to_rig(base_rig)
     if threshold_spread > 0:
-        rig = rig.replace_static(
+        rig = rig.replace_host(
             threshold_sigma=threshold_spread * float(params.threshold)
         )
     t0 = time.perf_counter()

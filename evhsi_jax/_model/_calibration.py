@@ -76,15 +76,10 @@ class Calibration:
         """The calibration of the region `roi = (x0, y0, x1, y1)` (half-open, pixels)
         of a `width`-column sensor: the columns keep their own time offsets, the maps
         are cut to the region."""
-        import equinox as eqx
-
         x0, y0, x1, y1 = (int(v) for v in roi)
         offs = np.asarray(self.rig.column_offsets(width), np.float64)[x0:x1]
-        rig = eqx.tree_at(
-            lambda r: r.column_offsets_us,
-            self.rig,
-            jnp.asarray(offs, self.rig.fwhm_nm.dtype),
-            is_leaf=lambda v: v is None,
+        rig = self.rig.with_leaves(
+            column_offsets_us=jnp.asarray(offs, self.rig.fwhm_nm.dtype)
         )
         cut = lambda a: None if a is None else a[y0:y1, x0:x1]  # noqa: E731
         return Calibration(
@@ -139,14 +134,14 @@ def load_calibration(path: str | os.PathLike) -> Calibration:
     Any rig key left out takes its default, so a one-key file is a valid calibration
     (global thresholds, no maps)."""
     path = Path(path)
-    rig = Rig.load(path)
-    try:
-        report = json.loads(path.read_text()).get("calibration") or {}
-    except AttributeError:
-        report = {}
+    rig = Rig.load(path, maps="ignore")  # (validates the file and its JSON)
+    data = json.loads(path.read_text())
+    report = data.get("calibration") or {}
     on = off = hot = None
-    if rig.threshold_map is not None:
-        mpath = Path(rig.threshold_map)
+    if data.get("threshold_map") is not None:
+        mpath = Path(data["threshold_map"])
+        if not mpath.is_absolute():
+            mpath = path.parent / mpath
         if not mpath.is_file():
             raise ValueError(f"{path}: threshold map file not found: {mpath}")
         data = read_npz(mpath, "threshold map file")
@@ -163,8 +158,6 @@ def load_calibration(path: str | os.PathLike) -> Calibration:
                 f"{mpath} holds neither threshold_on/threshold_off nor hot_pixels"
             )
     try:
-        return Calibration(
-            rig.replace_static(threshold_map=None), on, off, hot, report
-        )
+        return Calibration(rig, on, off, hot, report)
     except ValueError as err:
         raise ValueError(f"{path}: {err}") from None

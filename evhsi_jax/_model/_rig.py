@@ -3,8 +3,15 @@
 A :class:`Rig` is an `eqx.Module`. Its array fields are the differentiable leaves that
 calibration and design studies fit (band FWHM, sweep coefficient β, band start λ0, sweep
 rate, column offsets τx, ON/OFF thresholds, refractory time, constant light c, the camera
-response D(λ) and lamp E(λ) on the fine grid). Sizes, grids and simulation-only settings
-are static. JSON I/O follows the contract of DESIGN.md: every key is optional and takes
+response D(λ) and lamp E(λ) on the fine grid). Only what shapes the computation is
+static: sizes, the spectral grid, the reset mode, the band's sampled profile, whether
+the photoreceptor low-pass is on. Host-side settings (the simulation's seed, threshold
+spread and background rate, the sensor's noise magnitudes, the post-solve channel
+gain) are dynamic leaves held as NumPy values, so a kernel that takes the rig is
+compiled once whatever they are (`tests/forward/test_rig.py` counts traces with
+`eqx.debug.assert_max_traces`). A per-pixel threshold map is not part of a rig: the
+file pair of a calibration names it, and :func:`evhsi_jax.load_calibration` reads
+both. JSON I/O follows the contract of DESIGN.md: every key is optional and takes
 the default rig's value when left out.
 
 Timing model (documented choice, see README "Physics"): one sweep per mirror revolution,
@@ -25,6 +32,7 @@ import dataclasses
 import json
 import math
 import os
+import types
 from pathlib import Path
 from typing import Any
 
@@ -150,28 +158,53 @@ EFFECT_KEYS = (
     "psf_sigma_px",
 )
 
+#: Host-side rig fields besides the sensor effects (:meth:`Rig.replace_host`).
+HOST_FIELDS = ("threshold_sigma", "noise_rate_hz", "seed", "channel_gain")
 
-@dataclasses.dataclass(frozen=True)
-class SensorEffects:
-    """The event sensor's non-idealities (host-side settings, hashable).
+
+class SensorEffects(eqx.Module):
+    """The event sensor's non-idealities.
 
     Defaults are the ideal sensor. Magnitudes of the `realistic` preset and where they
-    come from: README "Sensor model". Fields are the rig keys of the same name.
+    come from: README "Sensor model". Fields are the rig keys of the same name. The
+    magnitudes are dynamic leaves (0-d float64 NumPy arrays; read them with `float`);
+    `photoreceptor_hz` is static because switching the low-pass on changes the model's
+    equations (its value enters as a number).
     """
 
-    threshold_noise: float = 0.0
-    on_off_correlation: float = 1.0
-    timestamp_jitter_us: float = 0.0
-    latency_us: float = 0.0
-    photoreceptor_hz: float = 0.0
-    hot_pixel_fraction: float = 0.0
-    hot_pixel_rate_hz: float = 1000.0
-    sweep_rate_jitter: float = 0.0
-    psf_sigma_px: float = 0.0
+    threshold_noise: np.ndarray
+    on_off_correlation: np.ndarray
+    timestamp_jitter_us: np.ndarray
+    latency_us: np.ndarray
+    hot_pixel_fraction: np.ndarray
+    hot_pixel_rate_hz: np.ndarray
+    sweep_rate_jitter: np.ndarray
+    psf_sigma_px: np.ndarray
+    photoreceptor_hz: float = eqx.field(static=True)
+
+    def __init__(self, **values):
+        unknown = set(values) - set(EFFECT_KEYS)
+        if unknown:
+            raise TypeError(f"unknown sensor effects {sorted(unknown)}")
+        for k in EFFECT_KEYS:
+            v = float(values.get(k, DEFAULTS[k]))
+            setattr(
+                self, k, v if k == "photoreceptor_hz" else np.asarray(v, np.float64)
+            )
+
+    def as_dict(self) -> dict[str, float]:
+        return {k: float(getattr(self, k)) for k in EFFECT_KEYS}
+
+    def floats(self) -> types.SimpleNamespace:
+        """The values as Python floats, by attribute (for host code)."""
+        return types.SimpleNamespace(**self.as_dict())
+
+    def replace(self, **values) -> SensorEffects:
+        return SensorEffects(**{**self.as_dict(), **values})
 
     @property
     def ideal(self) -> bool:
-        return self == SensorEffects()
+        return self.as_dict() == _IDEAL.as_dict()
 
 
 _IDEAL = SensorEffects()
@@ -277,7 +310,8 @@ class Rig(eqx.Module):
 
     Build with `Rig.from_dict({...})` / `Rig.load(path)` (validated, any key optional)
     or `Rig()` for the defaults; replace array leaves with :meth:`with_leaves`
-    (differentiable) and static fields with :meth:`replace_static`.
+    (differentiable), host-side settings with :meth:`replace_host` and static fields
+    with :meth:`replace_static`.
     """
 
     fwhm_nm: Float[Array, ""]
@@ -293,17 +327,20 @@ class Rig(eqx.Module):
     lamp: Float[Array, " fine"]
     column_offsets_us: Float[Array, " w"] | None
     sweep_curvature_nm: Float[Array, ""]
+    # host-side settings: dynamic NumPy leaves (see the module docstring)
+    threshold_sigma: np.ndarray
+    noise_rate_hz: np.ndarray
+    seed: np.ndarray
+    channel_gain: np.ndarray
+    effects: SensorEffects
+    # the structure of the computation
     grid: SpectralGrid = eqx.field(static=True)
     samples_per_sweep: int = eqx.field(static=True)
-    threshold_sigma: float = eqx.field(static=True)
-    noise_rate_hz: float = eqx.field(static=True)
-    seed: int = eqx.field(static=True)
     reset_mode: str = eqx.field(static=True)
-    spectra_json: tuple = eqx.field(static=True)
-    threshold_map: str | None = eqx.field(static=True)
-    channel_gain: tuple | None = eqx.field(static=True)
     band_profile: tuple | None = eqx.field(static=True)
-    effects: SensorEffects = eqx.field(static=True)
+    #: The file's own spelling of D(λ) and E(λ) (JSON text, `null` for the defaults),
+    #: kept to write them back as given; equal for rigs read from the same file.
+    spectra_json: tuple = eqx.field(static=True)
 
     def __init__(self, **overrides):
         cfg = _validated({**DEFAULTS, **overrides})
@@ -323,10 +360,17 @@ class Rig(eqx.Module):
             "lamp", cfg["lamp"], self.grid, default_lamp_spectrum
         )
         self.spectra_json = (json.dumps(d_json), json.dumps(e_json))
-        tmap = cfg["threshold_map"]
-        self.threshold_map = None if tmap is None else str(tmap)
+        if cfg["threshold_map"] is not None:
+            raise ValueError(
+                "rig key 'threshold_map': a rig holds no per-pixel maps; read a "
+                "calibration file pair with evhsi_jax.load_calibration(path)"
+            )
         gain = cfg["channel_gain"]
-        self.channel_gain = None if gain is None else tuple(float(v) for v in gain)
+        # always an array (ones: no correction), so the tree's structure is the same
+        # with and without a white-reference correction
+        self.channel_gain = np.asarray(
+            np.ones(self.grid.channels) if gain is None else gain, np.float64
+        )
         self.camera_response = jnp.asarray(d, dtype=float)
         self.lamp = jnp.asarray(e, dtype=float)
         for k in (
@@ -344,17 +388,15 @@ class Rig(eqx.Module):
             setattr(self, k, _scalar(cfg[k]))
         prof = cfg["band_profile"]
         self.band_profile = (
-            None
-            if prof is None
-            else (tuple(prof["offset_nm"]), tuple(prof["values"]))
+            None if prof is None else (tuple(prof["offset_nm"]), tuple(prof["values"]))
         )
         self.effects = SensorEffects(**{k: cfg[k] for k in EFFECT_KEYS})
         offs = cfg["column_offsets_us"]
         self.column_offsets_us = None if offs is None else jnp.asarray(offs, float)
         self.samples_per_sweep = cfg["samples_per_sweep"]
-        self.threshold_sigma = cfg["threshold_sigma"]
-        self.noise_rate_hz = cfg["noise_rate_hz"]
-        self.seed = cfg["seed"]
+        self.threshold_sigma = np.asarray(float(cfg["threshold_sigma"]), np.float64)
+        self.noise_rate_hz = np.asarray(float(cfg["noise_rate_hz"]), np.float64)
+        self.seed = np.asarray(int(cfg["seed"]), np.int64)
         self.reset_mode = cfg["reset_mode"]
 
     def with_leaves(self, **values) -> Rig:
@@ -363,13 +405,14 @@ class Rig(eqx.Module):
 
         Differentiable (`eqx.tree_at`): gradients flow into the new values, which is how
         the calibration and design code put traced parameters into a rig. Values keep
-        their own dtype; unknown or static names raise.
+        their own dtype; unknown, static or host-side names raise (host settings:
+        :meth:`replace_host`).
         """
         if not values:
             return self
         leaves = {
             f.name for f in dataclasses.fields(self) if not f.metadata.get("static")
-        }
+        } - set(HOST_FIELDS)
         bad = sorted(set(values) - leaves)
         if bad:
             raise AttributeError(f"not array leaves of Rig: {bad}")
@@ -382,28 +425,60 @@ class Rig(eqx.Module):
         )
 
     def replace_static(self, **fields) -> Rig:
-        """A copy with static fields replaced (e.g. `channel_gain`), unvalidated."""
+        """A copy with static fields replaced, unvalidated."""
+        static = {f.name for f in dataclasses.fields(self) if f.metadata.get("static")}
+        bad = sorted(set(fields) - static)
+        if bad:
+            raise AttributeError(
+                f"not static fields of Rig: {bad} (array leaves: with_leaves; host "
+                "settings: replace_host)"
+            )
+        return self._replaced(fields)
+
+    def _replaced(self, fields: dict) -> Rig:
         import copy
 
         new = copy.copy(self)
         for k, v in fields.items():
-            if not hasattr(self, k):
-                raise AttributeError(k)
             object.__setattr__(new, k, v)
         return new
 
-    def without_host_settings(self) -> Rig:
-        """The same physics with every host-only setting (seed, simulation spreads and
-        rates, sensor effects, file names, the post-solve gain) at its default: what
-        compiled kernels take, so that changing such a setting never recompiles."""
-        return self.replace_static(
-            threshold_sigma=0.0,
-            noise_rate_hz=0.0,
-            seed=0,
-            threshold_map=None,
-            channel_gain=None,
-            effects=_IDEAL,
+    def replace_host(self, **values) -> Rig:
+        """A copy with host-side settings replaced by their rig keys (`seed`,
+        `threshold_sigma`, `noise_rate_hz`, `channel_gain` or a sensor-effect key such
+        as `threshold_noise`), validated like a rig file's keys."""
+        bad = sorted(set(values) - set(HOST_FIELDS) - set(EFFECT_KEYS))
+        if bad:
+            raise AttributeError(f"not host settings of Rig: {bad}")
+        cfg = _validated(
+            {**DEFAULTS, "channels": self.channels, **self._host_dict(), **values}
         )
+        fx = {k: cfg[k] for k in EFFECT_KEYS}
+        return self._replaced(
+            dict(
+                threshold_sigma=np.asarray(float(cfg["threshold_sigma"]), np.float64),
+                noise_rate_hz=np.asarray(float(cfg["noise_rate_hz"]), np.float64),
+                seed=np.asarray(int(cfg["seed"]), np.int64),
+                channel_gain=np.asarray(
+                    np.ones(self.channels)
+                    if cfg["channel_gain"] is None
+                    else cfg["channel_gain"],
+                    np.float64,
+                ),
+                effects=SensorEffects(**fx),
+            )
+        )
+
+    def _host_dict(self) -> dict:
+        return {
+            "threshold_sigma": float(self.threshold_sigma),
+            "noise_rate_hz": float(self.noise_rate_hz),
+            "seed": int(self.seed),
+            "channel_gain": None
+            if np.all(np.asarray(self.channel_gain) == 1.0)
+            else [float(v) for v in np.asarray(self.channel_gain)],
+            **self.effects.as_dict(),
+        }
 
     def astype(self, dtype) -> Rig:
         """The same rig with every floating-point leaf cast to `dtype` (for float64,
@@ -498,8 +573,15 @@ class Rig(eqx.Module):
         return cls(**data)
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> Rig:
-        """Read a rig/calibration JSON file (keys left out take default values)."""
+    def load(cls, path: str | os.PathLike, *, maps: str = "error") -> Rig:
+        """Read a rig JSON file (keys left out take default values).
+
+        A calibration file that names per-pixel threshold maps is refused (a bare rig
+        would silently use the global thresholds): load it with
+        :func:`evhsi_jax.load_calibration`, or pass `maps="ignore"` to read its rig
+        alone (e.g. to simulate with a calibrated rig)."""
+        if maps not in ("error", "ignore"):
+            raise ValueError(f"maps must be 'error' or 'ignore', got {maps!r}")
         path = Path(path)
         if not path.is_file():
             raise ValueError(f"rig file not found: {path}")
@@ -507,10 +589,14 @@ class Rig(eqx.Module):
             data = json.loads(path.read_text())
         except (json.JSONDecodeError, UnicodeDecodeError) as err:
             raise ValueError(f"{path} is not valid JSON ({err})") from None
-        if isinstance(data, dict) and isinstance(data.get("threshold_map"), str):
-            tmap = Path(data["threshold_map"])
-            if not tmap.is_absolute():
-                data = {**data, "threshold_map": str(path.parent / tmap)}
+        if isinstance(data, dict) and data.get("threshold_map") is not None:
+            if maps == "error":
+                raise ValueError(
+                    f"{path} names per-pixel threshold maps "
+                    f"({data['threshold_map']}) that a bare rig would ignore: load it "
+                    "with evhsi_jax.load_calibration(path)"
+                )
+            data = {**data, "threshold_map": None}
         try:
             return cls.from_dict(data)
         except ValueError as err:
@@ -541,13 +627,14 @@ class Rig(eqx.Module):
             out["column_offsets_us"] = _json_floats(self.column_offsets_us)
         else:
             out["column_offsets_us"] = None
-        out["threshold_sigma"] = self.threshold_sigma
+        host = self._host_dict()
+        out["threshold_sigma"] = host["threshold_sigma"]
         out["refractory_us"] = _json_floats(self.refractory_us)
         out["baseline_rel"] = _json_floats(self.baseline_rel)
         out["log_eps"] = _json_floats(self.log_eps)
-        out["noise_rate_hz"] = self.noise_rate_hz
+        out["noise_rate_hz"] = host["noise_rate_hz"]
         for k in EFFECT_KEYS:
-            out[k] = getattr(self.effects, k)
+            out[k] = host[k]
         out["sweep_curvature_nm"] = _json_floats(self.sweep_curvature_nm)
         out["band_profile"] = (
             None
@@ -558,13 +645,11 @@ class Rig(eqx.Module):
             }
         )
         out["reset_mode"] = self.reset_mode
-        out["seed"] = self.seed
+        out["seed"] = host["seed"]
         out["camera_response"] = json.loads(self.spectra_json[0])
         out["lamp"] = json.loads(self.spectra_json[1])
-        out["threshold_map"] = self.threshold_map
-        out["channel_gain"] = (
-            None if self.channel_gain is None else list(self.channel_gain)
-        )
+        out["threshold_map"] = None  # a rig alone has no maps (Calibration.save)
+        out["channel_gain"] = host["channel_gain"]
         return out
 
     def save(self, path: str | os.PathLike, width: int | None = None) -> None:

@@ -1,5 +1,7 @@
 """Per-pixel box-QP reconstruction of spectra from events."""
 
+from ._deblur import DEFAULT_WIENER_REG as DEFAULT_WIENER_REG
+from ._deblur import deblur_cube as deblur_cube
 from ._implicit import box_qp as box_qp
 from ._implicit import reconstruct_pixels as reconstruct_pixels
 from ._pipeline import SOLVERS as SOLVERS

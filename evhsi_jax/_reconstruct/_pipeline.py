@@ -23,6 +23,7 @@ from tqdm.auto import tqdm
 from .._base import check_fits, shard
 from .._model import Calibration, EventStream, Rig, band_table
 from . import _solvers
+from ._deblur import deblur_cube
 from ._pixels import PixelEvents, group_pixels
 from ._problem import ProblemConfig, lit_interval_us, pixel_system, system_from_rows
 
@@ -297,7 +298,7 @@ def noise_model(rig: Rig) -> np.ndarray | None:
     sensor keys, or `None` for a sensor that is ideal within what a calibration can
     tell (σ_C < 0.002 log, σ_t < 1 µs, no photoreceptor low-pass and background
     activity below 0.05 Hz per pixel)."""
-    fx = rig.effects
+    fx = rig.effects.floats()
     d_w = 1e6 / (2 * np.pi * fx.photoreceptor_hz) if fx.photoreceptor_hz > 0 else 0.0
     material = (
         fx.threshold_noise >= MATERIAL_THRESHOLD_NOISE
@@ -325,6 +326,7 @@ def reconstruct(
     progress: bool = False,
     return_info: bool = False,
     mesh=None,
+    deblur: bool | None = None,
 ):
     """Reconstruct a reflectance cube from an event recording of a static scene.
 
@@ -334,8 +336,8 @@ def reconstruct(
     - `calibration`: a :class:`Calibration` (:func:`evhsi_jax.load_calibration`): its
       rig, per-pixel thresholds, hot-pixel map and sensor noise are all used. A bare
       :class:`Rig` means global thresholds and the noise its sensor keys give (none by
-      default); a rig loaded from a calibration file that names per-pixel maps is
-      refused (load the file with `load_calibration`).
+      default; `Rig.load` refuses a file that names per-pixel maps: load it with
+      `load_calibration`).
     - `solver`: a name from `SOLVERS`, `"auto"`, or a :class:`SolverSpec`.
     - `config`: the per-pixel problem's weights (:class:`ProblemConfig`).
     - `threshold_on_map`, `threshold_off_map`: optional per-pixel thresholds `(H, W)`
@@ -354,6 +356,11 @@ def reconstruct(
     - `sub_batch`: pixels per `lax.map` step inside a chunk.
     - `progress`: show a progress bar.
     - `return_info`: also return a :class:`ReconstructionInfo`.
+    - `deblur`: undo the optics' blur, a Gaussian PSF of the rig's `psf_sigma_px`
+      (which `calibrate` measures), by Wiener deconvolution of each channel
+      (:func:`evhsi_jax.reconstruction.deblur_cube`). Default (`None`): when that σ
+      is > 0, i.e. when the calibration measured a blur (README "Real sensors" has
+      what it gains and costs, `experiments/deblur.py`).
     - `mesh`: a `jax.sharding.Mesh` with a `"pixels"` axis
       (:func:`evhsi_jax.sharding.pixel_mesh`): each chunk's pixels are split over its devices,
       `chunk_pixels` per device, each with the same per-pixel kernel. A one-device
@@ -371,13 +378,7 @@ def reconstruct(
     """
     if isinstance(calibration, Calibration):
         cal = calibration
-    elif isinstance(calibration, Rig):
-        if calibration.threshold_map is not None:
-            raise ValueError(
-                "this rig names per-pixel threshold maps "
-                f"({calibration.threshold_map}) that reconstruct would ignore: load the "
-                "file with evhsi_jax.load_calibration(path) and pass that"
-            )
+    elif isinstance(calibration, Rig):  # (a rig never names maps: Rig.load refuses)
         cal = Calibration(calibration)
     else:
         raise TypeError("calibration must be a Calibration or a Rig")
@@ -429,7 +430,7 @@ def reconstruct(
     dtype = rig.fwhm_nm.dtype  # float32 or float64: the rig decides
     table = band_table(rig).channels(rig.grid.sub)
     noise_j = None if noise is None else jnp.asarray(noise, dtype)
-    krig = rig.without_host_settings()
+    krig = rig
     thr_on = (
         np.full(h * w, float(rig.threshold_on))
         if threshold_on_map is None
@@ -490,10 +491,13 @@ def reconstruct(
     if bad.any():  # never hand out NaN: the no-event answer, flagged (kkt = inf)
         cube[bad] = _no_event_answer(rig, m)
         kkt_all[np.any(bad, axis=1)] = np.inf
-    if rig.channel_gain is not None:  # white-reference response correction
+    if np.any(np.asarray(rig.channel_gain) != 1.0):  # white-reference correction
         cube = cube / np.asarray(rig.channel_gain, np.float32)
     if hot.any():  # hot pixels carry no light information: fill from neighbours
         cube = _fill_from_neighbours(cube.reshape(h, w, m), hot, counts.reshape(h, w))
+    psf = float(rig.effects.psf_sigma_px)
+    if (psf > 0) if deblur is None else deblur:
+        cube = deblur_cube(cube.reshape(h, w, m), psf)
     cube = np.clip(cube, 0.0, cfg.max_reflectance).reshape(h, w, m)
     if not return_info:
         return cube

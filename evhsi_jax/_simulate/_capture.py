@@ -289,7 +289,7 @@ def simulate(
     _check_sweep_fits(rig, offsets)
     k_thr, k_noise = jr.split(key)
     thr_on, thr_off = threshold_maps(rig, h, w, key=k_thr)
-    fx = rig.effects
+    fx = rig.effects.floats()
     # Keys of the sensor effects, derived so that the ideal sensor's draws (thresholds,
     # background noise) are the same as without them.
     k_ref, k_time, k_hot, k_sweep = (jr.fold_in(key, 1000 + i) for i in range(4))
@@ -305,7 +305,6 @@ def simulate(
         speed_factor = 1.0 + fx.sweep_rate_jitter * np.asarray(
             jr.normal(k_sweep, (sweeps,)), np.float64
         )
-    kernel_rig = rig.without_host_settings()
 
     oversample = time_oversampling(rig)
     n = rig.samples_per_sweep * oversample
@@ -350,10 +349,10 @@ def simulate(
     for s_idx, sc in enumerate(scenes):
         # Mirror-speed jitter: the whole sweep λc(t) runs faster or slower by a factor
         # (β·ω scales together), which is a change of β for this sweep.
-        srig = kernel_rig
+        srig = rig
         if speed_factor[s_idx] != 1.0:
-            srig = kernel_rig.with_leaves(
-                beta_nm_per_rad=kernel_rig.beta_nm_per_rad * speed_factor[s_idx]
+            srig = rig.with_leaves(
+                beta_nm_per_rad=rig.beta_nm_per_rad * speed_factor[s_idx]
             )
         tab_vals, pal = basis(sc)
         use_palette = pal.shape[0] < h

@@ -511,6 +511,7 @@ def reconstruct_sweeps(
     idle_timeout_s: float = 10.0,
     should_stop: Callable[[], bool] | None = None,
     roi: tuple[int, int, int, int] | None = None,
+    deblur: bool | None = None,
 ) -> StreamResult:
     """Reconstruct every sweep of a recording into its own cube file (resumable).
 
@@ -525,7 +526,7 @@ def reconstruct_sweeps(
       `threshold_off_map`: optional per-pixel thresholds `(H, W)`, log units, that
       override the calibration's.
     - `out_dir`: the dataset folder (created; its parent must exist).
-    - `solver`, `config`, `chunk_pixels`, `sub_batch`, `mesh`: as for
+    - `solver`, `config`, `chunk_pixels`, `sub_batch`, `mesh`, `deblur`: as for
       :func:`evhsi_jax.reconstruct` (`mesh` shards each sweep's pixels over devices).
     - `triggers`: `"auto"` (encoder triggers if the first periods hold any, else the
       period), `"require"` or `"ignore"`; without triggers, sweeps start at
@@ -568,11 +569,6 @@ def reconstruct_sweeps(
     if max_sweeps is not None and max_sweeps < 1:
         raise ValueError(f"max_sweeps must be >= 1, got {max_sweeps}")
     writer = is_main_process()
-    if isinstance(calibration, Rig) and calibration.threshold_map is not None:
-        raise ValueError(
-            "this rig names per-pixel threshold maps that would be ignored: load the "
-            "file with evhsi_jax.load_calibration(path) and pass that"
-        )
     cal = calibration if isinstance(calibration, Calibration) else Calibration(calibration)
     live = (
         dict(idle_timeout_s=idle_timeout_s, should_stop=should_stop) if follow else None
@@ -616,83 +612,32 @@ def reconstruct_sweeps(
     }
     if roi is not None:  # (absent otherwise: older datasets keep their fingerprint)
         settings["roi"] = list(roi)
+    if deblur is not None:  # (absent by default: older datasets keep their fingerprint)
+        settings["deblur"] = bool(deblur)
     fp = _fingerprint(settings)
 
-    index_path = out_dir / INDEX_NAME
-    video = None
-    if writer and is_video_store(out_dir):
-        video = VideoStore(out_dir, "a")
-    elif writer:
-        out_dir.mkdir(exist_ok=True)
+    out = _SweepOutput(out_dir, writer, index_interval_s)
     # One writer per folder: a second run refuses instead of mixing its sweeps in.
-    with _writer_lock(out_dir, video) if writer else contextlib.nullcontext():
-        if video is not None:
-            stale = video.repair()
-            done = _finished_in_store(video, fp, overwrite=overwrite)
-            video.prepare(h, w, rig.wavelengths_nm)
-        else:
-            stale = _remove_stale_temporaries(out_dir) if writer else 0
-            done = _finished_sweeps(out_dir, fp, overwrite=overwrite and writer)
-
-        index = {
-            "format": FORMAT,
-            "version": VERSION,
-            "fingerprint": fp,
-            "complete": False,
-            "height": h,
-            "width": w,
-            "channels": rig.channels,
-            "wavelengths_nm": [float(v) for v in rig.wavelengths_nm],
-            "period_us": period,
-            "boundaries": cutter.mode,
-            "reference": "carry: first event of a sweep refers to the release after the "
-            "pixel's last earlier event",
-            "low_event_rel": low_event_rel,
-            "median_events": 0.0,
-            "preview": None,
-            "settings": settings,
-            "sweeps": [],
-        }
-        last_write = [0.0]
-
-        def commit_index(force=False):
-            if not writer:
-                return
-            now = time.perf_counter()
-            if not force and now - last_write[0] < index_interval_s:
-                return
-            entries = [done[k] for k in sorted(done)]
-            index["median_events"] = _mark_sweep_quality(entries, low_event_rel, period)
-            index["sweeps"] = entries
-            if video is not None:
-                video.set_index(index)
-            else:
-                _write_json(index_path, index)
-            last_write[0] = now
-
-        last_t = np.full(h * w, -1, np.int64)  # last event time per pixel (-1: none)
-
-        def carry(ev: EventStream):
-            if len(ev):
-                pix = ev.y.astype(np.int64) * w + ev.x.astype(np.int64)
-                np.maximum.at(last_t, pix, ev.t_us)
-
+    with out.lock():
+        stale, done = out.open(fp, overwrite, h, w, rig.wavelengths_nm)
+        index = out.new_index(
+            fp, settings, h, w, rig, period, cutter.mode, low_event_rel
+        )
+        carry = _ReferenceCarry(h, w, eta)
         n_new = n_skip = 0
         solve_s = 0.0
         bar = tqdm(disable=not progress, unit="sweep", desc="reconstruct sweeps")
         try:
-            commit_index(force=True)
+            out.commit(force=True)
             for k, start, stop, ev, before in _chain([first], sweeps_iter):
                 if max_sweeps is not None and k >= max_sweeps:
                     break
-                if before is not None:
-                    carry(before)
+                carry.add(before)
                 if k in done and done[k]["start_us"] == start:
                     n_skip += 1
-                    carry(ev)
+                    carry.add(ev)
                     bar.update(1)
                     continue
-                ref = np.where(last_t >= 0, last_t + TIMESTAMP_CENTRE_US + eta, np.nan)
                 t0 = time.perf_counter()
                 cube, info = reconstruct(
                     ev,
@@ -702,62 +647,29 @@ def reconstruct_sweeps(
                     threshold_on_map=threshold_on_map,
                     threshold_off_map=threshold_off_map,
                     t_start_us=start,
-                    reference_us=ref.reshape(h, w),
+                    reference_us=carry.reference_us(),
                     chunk_pixels=chunk_pixels,
                     sub_batch=sub_batch,
                     mesh=mesh,
                     return_info=True,
+                    deblur=deblur,
                 )
                 dt = time.perf_counter() - t0
                 solve_s += dt
-                carry(ev)
-                if video is not None and k < len(video):
-                    raise ValueError(
-                        f"{out_dir}: sweep {k} is in the store with another start time"
-                    )
-                entry = {
-                    "sweep": k,
-                    "file": None if video is not None else sweep_file_name(k),
-                    "start_us": int(start),
-                    "stop_us": int(stop),
-                    "events": len(ev),
-                    "pixels_solved": int(info.solved.sum()),
-                    "seconds": round(dt, 4),
-                }
-                if writer:
-                    srgb = np.round(255 * cube_to_srgb(cube, rig.wavelengths_nm))
-                if video is not None:
-                    entry["position"] = len(video)
-                    video.append(entry, cube, srgb, info.events, info.kkt)
-                elif writer:
-                    save_cube(
-                        out_dir / entry["file"],
-                        cube,
-                        rig.wavelengths_nm,
-                        srgb=srgb.astype(np.uint8),
-                        events_per_pixel=info.events.astype(np.int32),
-                        kkt=info.kkt,
-                        sweep=np.int64(k),
-                        start_us=np.int64(start),
-                        stop_us=np.int64(stop),
-                        events=np.int64(len(ev)),
-                    )
-                    entry["sha256"] = _file_digest(out_dir / entry["file"])
-                done[k] = entry
+                carry.add(ev)
+                entry = out.write_sweep(k, start, stop, ev, cube, info, dt, rig)
                 n_new += 1
                 bar.update(1)
                 bar.set_postfix_str(f"{h * w / max(dt, 1e-9):,.0f} px/s", refresh=False)
-                commit_index()
+                out.commit()
                 if on_sweep is not None:
                     on_sweep(dict(entry))
             index["complete"] = True  # every sweep (up to max_sweeps) is done
         finally:
             bar.close()
-            commit_index(force=True)
-        if writer and video is None and preview and index["complete"] and done:
-            gif = write_preview_gif(out_dir)
-            index["preview"] = gif.name if gif else None
-            commit_index(force=True)
+            out.commit(force=True)
+        if preview:
+            out.write_preview()
     entries = index["sweeps"]
     return StreamResult(
         out_dir=out_dir,
@@ -771,6 +683,148 @@ def reconstruct_sweeps(
         stale_removed=stale,
         decode=None if reader is None else reader.report.as_dict(),
     )
+
+
+class _ReferenceCarry:
+    """Each pixel's last event time so far, carried from sweep to sweep: the next
+    sweep's first event of a pixel refers to the release after it (module docstring,
+    "per-sweep reference")."""
+
+    def __init__(self, h: int, w: int, eta_us: float):
+        self.h, self.w, self.eta = h, w, eta_us
+        self.last_t = np.full(h * w, -1, np.int64)  # -1: no event yet
+
+    def add(self, ev: EventStream | None) -> None:
+        if ev is not None and len(ev):
+            pix = ev.y.astype(np.int64) * self.w + ev.x.astype(np.int64)
+            np.maximum.at(self.last_t, pix, ev.t_us)
+
+    def reference_us(self) -> np.ndarray:
+        lt = self.last_t
+        ref = np.where(lt >= 0, lt + TIMESTAMP_CENTRE_US + self.eta, np.nan)
+        return ref.reshape(self.h, self.w)
+
+
+class _SweepOutput:
+    """Where the sweeps of a run go: a folder of cube files with `index.json`, or a
+    Zarr video store; resuming (the finished sweeps of the same settings), the index
+    and its rate-limited rewrites, the preview. Processes other than the main one
+    (multi-process runs) compute but write nothing."""
+
+    def __init__(self, out_dir: Path, writer: bool, index_interval_s: float):
+        self.dir, self.writer, self.interval = out_dir, writer, index_interval_s
+        self.video: VideoStore | None = None
+        if writer and is_video_store(out_dir):
+            self.video = VideoStore(out_dir, "a")
+        elif writer:
+            out_dir.mkdir(exist_ok=True)
+        self.done: dict[int, dict] = {}
+        self.index: dict = {}
+        self._last_write = 0.0
+
+    def lock(self):
+        if not self.writer:
+            return contextlib.nullcontext()
+        return _writer_lock(self.dir, self.video)
+
+    def open(self, fp: str, overwrite: bool, h: int, w: int, wavelengths):
+        """Repair what a crash left and read the sweeps already finished with these
+        settings: `(stale files removed, {sweep: index entry})`."""
+        if self.video is not None:
+            stale = self.video.repair()
+            self.done = _finished_in_store(self.video, fp, overwrite=overwrite)
+            self.video.prepare(h, w, wavelengths)
+        else:
+            stale = _remove_stale_temporaries(self.dir) if self.writer else 0
+            self.done = _finished_sweeps(
+                self.dir, fp, overwrite=overwrite and self.writer
+            )
+        return stale, self.done
+
+    def new_index(self, fp, settings, h, w, rig, period, mode, low_event_rel) -> dict:
+        self.index = {
+            "format": FORMAT,
+            "version": VERSION,
+            "fingerprint": fp,
+            "complete": False,
+            "height": h,
+            "width": w,
+            "channels": rig.channels,
+            "wavelengths_nm": [float(v) for v in rig.wavelengths_nm],
+            "period_us": period,
+            "boundaries": mode,
+            "reference": "carry: first event of a sweep refers to the release after the "
+            "pixel's last earlier event",
+            "low_event_rel": low_event_rel,
+            "median_events": 0.0,
+            "preview": None,
+            "settings": settings,
+            "sweeps": [],
+        }
+        return self.index
+
+    def commit(self, force: bool = False) -> None:
+        """Rewrite the index (at most every `index_interval_s` unless forced)."""
+        if not self.writer:
+            return
+        now = time.perf_counter()
+        if not force and now - self._last_write < self.interval:
+            return
+        entries = [self.done[k] for k in sorted(self.done)]
+        self.index["median_events"] = _mark_sweep_quality(
+            entries, self.index["low_event_rel"], self.index["period_us"]
+        )
+        self.index["sweeps"] = entries
+        if self.video is not None:
+            self.video.set_index(self.index)
+        else:
+            _write_json(self.dir / INDEX_NAME, self.index)
+        self._last_write = now
+
+    def write_sweep(self, k, start, stop, ev, cube, info, seconds, rig) -> dict:
+        """Store sweep `k`'s cube and return its index entry."""
+        video = self.video
+        if video is not None and k < len(video):
+            raise ValueError(
+                f"{self.dir}: sweep {k} is in the store with another start time"
+            )
+        entry = {
+            "sweep": k,
+            "file": None if video is not None else sweep_file_name(k),
+            "start_us": int(start),
+            "stop_us": int(stop),
+            "events": len(ev),
+            "pixels_solved": int(info.solved.sum()),
+            "seconds": round(seconds, 4),
+        }
+        if self.writer:
+            srgb = np.round(255 * cube_to_srgb(cube, rig.wavelengths_nm))
+        if video is not None:
+            entry["position"] = len(video)
+            video.append(entry, cube, srgb, info.events, info.kkt)
+        elif self.writer:
+            save_cube(
+                self.dir / entry["file"],
+                cube,
+                rig.wavelengths_nm,
+                srgb=srgb.astype(np.uint8),
+                events_per_pixel=info.events.astype(np.int32),
+                kkt=info.kkt,
+                sweep=np.int64(k),
+                start_us=np.int64(start),
+                stop_us=np.int64(stop),
+                events=np.int64(len(ev)),
+            )
+            entry["sha256"] = _file_digest(self.dir / entry["file"])
+        self.done[k] = entry
+        return entry
+
+    def write_preview(self) -> None:
+        """`preview.gif` of a complete folder run (not for a video store)."""
+        if self.writer and self.video is None and self.index["complete"] and self.done:
+            gif = write_preview_gif(self.dir)
+            self.index["preview"] = gif.name if gif else None
+            self.commit(force=True)
 
 
 def _chain(*its):

@@ -39,6 +39,7 @@ def test_python_and_cli_reconstruct_the_same_cube(realistic_files):
     assert cal.threshold_on is not None and cal.hot_pixels is not None
     assert cal.rig.effects.threshold_noise > 0
     assert cal.report["psf_sigma_px"] in (0.4, 0.5, 0.6)  # the preset's lens: 0.5 px
+    assert float(cal.rig.effects.psf_sigma_px) == cal.report["psf_sigma_px"]  # in the rig
     cube = ev.reconstruct(ev.read_events(d / "cc.npz"), cal)
     np.testing.assert_array_equal(cube, np.load(d / "cube.npz")["cube"])
     assert cube.min() >= 0.0 and cube.max() <= 1.5

@@ -46,7 +46,7 @@ def test_calibration_measures_the_optics_blur_and_keeps_border_thresholds():
     chart = ev.load_scene("gray-chart", (24, 32))
     true = ev.Rig(threshold_noise=0.01, psf_sigma_px=0.5)
     events, info = ev.simulate(chart, true, sweeps=4, key=jr.key(8), return_info=True)
-    rig = true.replace_static(effects=ev.Rig().effects)
+    rig = true.replace_host(**ev.Rig().effects.as_dict())
     on, off, psf = ev.calibration.threshold_maps_from_chart(events, chart, rig, return_psf=True)
     assert psf == 0.5
     on0, off0 = ev.calibration.threshold_maps_from_chart(events, chart, rig, psf_sigmas_px=(0.0,))
@@ -91,7 +91,7 @@ def test_a_background_event_does_not_cost_a_pixel_its_thresholds(monkeypatch):
     chart = ev.load_scene("gray-chart", (24, 32))
     true = ev.Rig(noise_rate_hz=3.0)
     events, info = ev.simulate(chart, true, sweeps=6, key=jr.key(5), return_info=True)
-    rig = true.replace_static(noise_rate_hz=0.0)
+    rig = true.replace_host(noise_rate_hz=0.0)
 
     def share_close():
         on, _ = ev.calibration.threshold_maps_from_chart(events, chart, rig)

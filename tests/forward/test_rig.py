@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from evhsi_jax import Rig
-from evhsi_jax._rig import DEFAULTS
+from evhsi_jax._model._rig import DEFAULTS
 from evhsi_jax.forward import SpectralGrid
 
 # DESIGN.md, "Defaults: the paper's simulated rig" and the JSON key list.
@@ -262,3 +262,41 @@ def test_with_leaves_replaces_by_name_and_is_differentiable():
         rig.with_leaves(grid=None)  # static field
     with pytest.raises(AttributeError, match="nope"):
         rig.with_leaves(nope=1.0)
+
+
+def test_host_settings_do_not_retrace_a_kernel_of_the_rig():
+    """Host-side settings (seed, the simulated threshold spread, background rate, the
+    post-solve channel gain, the non-structural sensor effects) are dynamic leaves:
+    a jitted function of the whole rig is traced once whatever their values. A change
+    of the model's structure (the photoreceptor switched on) does retrace, so the
+    check can fail."""
+    t = jnp.linspace(0.0, 30000.0, 7)
+
+    @eqx.filter_jit
+    @eqx.debug.assert_max_traces(max_traces=1)
+    def centres(rig):
+        return rig.band_centre_nm(t[:, None], rig.column_offsets_us[None, :])
+
+    offs = {"column_offsets_us": [0.0, -10.0, -20.0]}
+    ref = centres(Rig(**offs))
+    for host in (
+        {"seed": 7},
+        {"threshold_sigma": 0.03},
+        {"noise_rate_hz": 2.0},
+        {"channel_gain": [1.1] * 72},
+        {"threshold_noise": 0.02, "timestamp_jitter_us": 3.0, "latency_us": 40.0},
+        {"hot_pixel_fraction": 0.01, "sweep_rate_jitter": 0.001, "psf_sigma_px": 0.5},
+        {"on_off_correlation": 0.5, "hot_pixel_rate_hz": 50.0},
+    ):
+        np.testing.assert_array_equal(centres(Rig(**offs, **host)), ref)
+    with pytest.raises(Exception, match="trace"):
+        centres(Rig(**offs, photoreceptor_hz=3000.0))
+
+
+def test_a_rig_file_naming_threshold_maps_is_not_read_as_a_bare_rig(tmp_path):
+    """The maps would be silently lost (22 dB instead of 37 on the demo): `Rig.load`
+    refuses and says what to call; `maps="ignore"` reads the rig alone."""
+    (tmp_path / "calib.json").write_text(json.dumps({"threshold_map": "maps.npz"}))
+    with pytest.raises(ValueError, match="load_calibration"):
+        Rig.load(tmp_path / "calib.json")
+    assert Rig.load(tmp_path / "calib.json", maps="ignore").to_dict()["threshold_map"] is None
