@@ -157,9 +157,9 @@ _fit_residuals_jit = eqx.filter_jit(_fit_residuals)
 
 @eqx.filter_jit
 def _fit_jvp(p0, tangent, fit):
-    return jax.jvp(lambda q: _fit_residuals(q, (False, None, fit))[0], (p0,), (tangent,))[
-        1
-    ]
+    return jax.jvp(
+        lambda q: _fit_residuals(q, (False, None, fit))[0], (p0,), (tangent,)
+    )[1]
 
 
 @eqx.filter_jit
@@ -176,9 +176,9 @@ def _apply(params, base: Rig, basis=None) -> Rig:
         base = base.with_leaves(camera_response=resp / jnp.max(resp))
     extra = {}
     if "curv" in params:
-        extra["sweep_curvature_nm"] = base.sweep_curvature_nm + CURV_SCALE_NM * params[
-            "curv"
-        ]
+        extra["sweep_curvature_nm"] = (
+            base.sweep_curvature_nm + CURV_SCALE_NM * params["curv"]
+        )
     return base.with_leaves(
         threshold_on=base.threshold_on * jnp.exp(params["log_on"]),
         threshold_off=base.threshold_off * jnp.exp(params["log_off"]),
@@ -224,7 +224,9 @@ class CalibrationResult:
                 "events_used": self.events_used,
                 "pixels_used": self.pixels_used,
                 "outlier_pixels": self.outlier_pixels,
-                "hot_pixels": int(0 if self.hot_pixels is None else self.hot_pixels.sum()),
+                "hot_pixels": int(
+                    0 if self.hot_pixels is None else self.hot_pixels.sum()
+                ),
                 "threshold_noise": float(e.threshold_noise),
                 "timestamp_jitter_us": float(e.timestamp_jitter_us),
                 "noise_rate_hz": float(self.rig.noise_rate_hz),
@@ -272,7 +274,9 @@ def measure_noise(rig: Rig, data: ChartData, residuals: np.ndarray) -> dict:
     c = 0.5 * (float(rig.threshold_on) + float(rig.threshold_off))
     steps = _log_steps(rig, data)
     t = data.t_us
-    t_ref = np.concatenate([np.zeros_like(t[:, :1]), t[:, :-1] + float(rig.refractory_us)], axis=1)  # noqa: E501
+    t_ref = np.concatenate(
+        [np.zeros_like(t[:, :1]), t[:, :-1] + float(rig.refractory_us)], axis=1
+    )  # noqa: E501
     slope = np.abs(steps) / np.maximum(t - t_ref, 1.0)
     m = data.mask & np.isfinite(residuals)
     m[:, 0] = False  # the first event refers to the recording start
@@ -388,6 +392,81 @@ def calibrate(events: EventStream, chart: Scene, init: Rig, **kw) -> Calibration
     return dataclasses.replace(res, rig=rig)
 
 
+def _screened_chart_data(
+    events, chart, rig, t_start_us, rows_per_label, from_data, fit_baseline
+):
+    """The chart's per-pixel event lists with background activity and hot pixels
+    screened out (when starting from the data), checked for enough events and
+    levels: `(data, screened events, hot-pixel map)`."""
+    data = chart_data(
+        events, chart, rig, t_start_us=t_start_us, rows_per_label=rows_per_label
+    )
+    if from_data:
+        # Background activity and hot pixels are not in the model: find them with a
+        # first guess of the sweep's timing, drop their events, then start again.
+        rig0 = initial_guess(data, rig)
+        events, hot, _ = screen_events(
+            events, rig0, t_start_us, None, _sweeps_of(events, rig0, t_start_us),
+            margin_us=SCREEN_MARGIN_US,
+        )  # fmt: skip
+        data = chart_data(
+            events, chart, rig, t_start_us=t_start_us, rows_per_label=rows_per_label
+        )
+    else:
+        hot = np.zeros((events.height, events.width), bool)
+    n_on = int((data.mask & (data.polarity > 0)).sum())
+    n_off = int((data.mask & (data.polarity < 0)).sum())
+    if n_on < 10 or n_off < 10:
+        raise ValueError(
+            f"too few events to calibrate ({n_on} ON, {n_off} OFF on chart pixels); "
+            "need a lit capture of the chart with at least a few events per patch"
+        )
+    levels = np.unique(np.round(data.spectra.mean(axis=1), 4))
+    if fit_baseline and levels.size < 2:
+        raise ValueError(
+            "the chart has a single reflectance level: thresholds and the constant "
+            "light cannot be separated (use a chart with several gray levels, or "
+            "fit_baseline=False)"
+        )
+    return data, events, hot
+
+
+def _jacobi_scale(p0: dict, fit: _FitData, dev, shape, w: int) -> dict:
+    """Each parameter's Jacobian column norm at `p0` (floored): the change of variables
+    of :func:`_fit_chart_float64`."""
+    dtype = p0["tau"].dtype
+    res_col = jnp.broadcast_to(dev[3][:, None], shape).reshape(-1)
+
+    def jcol(tangent):
+        return _fit_jvp(p0, tangent, fit)
+
+    zero_t = jax.tree.map(jnp.zeros_like, p0)
+    scale = {}
+    for k in ("log_on", "log_off", "log_beta", "log_c") + (
+        ("curv",) if "curv" in p0 else ()
+    ):
+        scale[k] = jnp.linalg.norm(jcol({**zero_t, k: jnp.ones((), dtype)}))
+    scale["resp"] = (
+        jnp.stack(
+            [
+                jnp.linalg.norm(
+                    jcol({**zero_t, "resp": jnp.eye(p0["resp"].size, dtype=dtype)[j]})
+                )
+                for j in range(p0["resp"].size)
+            ]
+        )
+        if p0["resp"].size
+        else jnp.zeros((0,), dtype)
+    )
+    d_tau = jcol({**zero_t, "tau": jnp.ones((w,), dtype)})
+    scale["tau"] = jnp.sqrt(jax.ops.segment_sum(d_tau**2, res_col, num_segments=w))
+    scale = {
+        k: jnp.maximum(v, 1e-6 * jnp.max(v) + 1e-30) if v.size else v
+        for k, v in scale.items()
+    }
+    return scale
+
+
 def _fit_chart_float64(
     events: EventStream,
     chart: Scene,
@@ -436,37 +515,10 @@ def _fit_chart_float64(
         )
     if t_start_us is None:
         t_start_us = int(events.trigger_t_us[0]) if events.trigger_t_us.size else 0
-    data = chart_data(
-        events, chart, rig, t_start_us=t_start_us, rows_per_label=rows_per_label
-    )
     captured = events
-    if from_data:
-        # Background activity and hot pixels are not in the model: find them with a
-        # first guess of the sweep's timing, drop their events, then start again.
-        rig0 = initial_guess(data, rig)
-        events, hot, _ = screen_events(
-            events, rig0, t_start_us, None, _sweeps_of(events, rig0, t_start_us),
-            margin_us=SCREEN_MARGIN_US,
-        )  # fmt: skip
-        data = chart_data(
-            events, chart, rig, t_start_us=t_start_us, rows_per_label=rows_per_label
-        )
-    else:
-        hot = np.zeros((events.height, events.width), bool)
-    n_on = int((data.mask & (data.polarity > 0)).sum())
-    n_off = int((data.mask & (data.polarity < 0)).sum())
-    if n_on < 10 or n_off < 10:
-        raise ValueError(
-            f"too few events to calibrate ({n_on} ON, {n_off} OFF on chart pixels); "
-            "need a lit capture of the chart with at least a few events per patch"
-        )
-    levels = np.unique(np.round(data.spectra.mean(axis=1), 4))
-    if fit_baseline and levels.size < 2:
-        raise ValueError(
-            "the chart has a single reflectance level: thresholds and the constant "
-            "light cannot be separated (use a chart with several gray levels, or "
-            "fit_baseline=False)"
-        )
+    data, events, hot = _screened_chart_data(
+        events, chart, rig, t_start_us, rows_per_label, from_data, fit_baseline
+    )
     if from_data:
         rig = initial_guess(data, rig)
     dtype = rig.fwhm_nm.dtype
@@ -503,35 +555,7 @@ def _fit_chart_float64(
     # the rank-4 coupling of the global parameters", so the matrix-free CG inside each
     # Levenberg–Marquardt step converges in a few iterations. Each residual depends on
     # one τx only, so one JVP with all-ones τ tangents gives every column's norm.
-    res_col = jnp.broadcast_to(dev[3][:, None], data.t_us.shape).reshape(-1)
-
-    def jcol(tangent):
-        return _fit_jvp(p0, tangent, fit)
-
-    zero_t = jax.tree.map(jnp.zeros_like, p0)
-    scale = {}
-    for k in ("log_on", "log_off", "log_beta", "log_c") + (
-        ("curv",) if fit_curvature else ()
-    ):
-        scale[k] = jnp.linalg.norm(jcol({**zero_t, k: jnp.ones((), dtype)}))
-    scale["resp"] = (
-        jnp.stack(
-            [
-                jnp.linalg.norm(
-                    jcol({**zero_t, "resp": jnp.eye(response_degree, dtype=dtype)[j]})
-                )
-                for j in range(response_degree)
-            ]
-        )
-        if response_degree
-        else jnp.zeros((0,), dtype)
-    )
-    d_tau = jcol({**zero_t, "tau": jnp.ones((w,), dtype)})
-    scale["tau"] = jnp.sqrt(jax.ops.segment_sum(d_tau**2, res_col, num_segments=w))
-    scale = {
-        k: jnp.maximum(v, 1e-6 * jnp.max(v) + 1e-30) if v.size else v
-        for k, v in scale.items()
-    }
+    scale = _jacobi_scale(p0, fit, dev, data.t_us.shape, w)
 
     def theta_of(u):
         return jax.tree.map(lambda a, b: a / b, u, scale)

@@ -481,11 +481,13 @@ class Rig(eqx.Module):
         }
 
     def astype(self, dtype) -> Rig:
-        """The same rig with every floating-point leaf cast to `dtype` (for float64,
-        call inside `jax.enable_x64(True)`)."""
-        return jax.tree.map(
+        """The same rig with every floating-point physics leaf cast to `dtype` (for
+        float64, call inside `jax.enable_x64(True)`); the host settings keep their
+        float64 NumPy values (a measured noise level is not rounded to float32)."""
+        cast = jax.tree.map(
             lambda a: jnp.asarray(a, dtype) if eqx.is_inexact_array(a) else a, self
         )
+        return cast._replaced({k: getattr(self, k) for k in (*HOST_FIELDS, "effects")})
 
     # --- derived quantities ----------------------------------------------------------
     @property

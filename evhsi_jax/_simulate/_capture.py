@@ -76,11 +76,13 @@ def threshold_maps(rig: Rig, height: int, width: int, *, key: PRNGKeyArray):
     triggering); real pixels differ per polarity (the `realistic` preset uses
     ρ = 0.5). Clipped below at $0.1 C_0$ so a threshold is never ≤ 0.
     """
-    delta = rig.threshold_sigma * jr.normal(key, (height, width))
-    rho = rig.effects.on_off_correlation
+    # (Python floats: a NumPy float64 times a JAX array would be computed by NumPy)
+    sigma = float(rig.threshold_sigma)
+    rho = float(rig.effects.on_off_correlation)
+    delta = sigma * jr.normal(key, (height, width))
     delta_off = delta
     if rho < 1.0:
-        own = rig.threshold_sigma * jr.normal(jr.fold_in(key, 1), (height, width))
+        own = sigma * jr.normal(jr.fold_in(key, 1), (height, width))
         delta_off = rho * delta + math.sqrt(1.0 - rho * rho) * own
     on = jnp.maximum(rig.threshold_on + delta, 0.1 * rig.threshold_on)
     off = jnp.maximum(rig.threshold_off + delta_off, 0.1 * rig.threshold_off)

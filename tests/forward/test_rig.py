@@ -299,4 +299,17 @@ def test_a_rig_file_naming_threshold_maps_is_not_read_as_a_bare_rig(tmp_path):
     (tmp_path / "calib.json").write_text(json.dumps({"threshold_map": "maps.npz"}))
     with pytest.raises(ValueError, match="load_calibration"):
         Rig.load(tmp_path / "calib.json")
-    assert Rig.load(tmp_path / "calib.json", maps="ignore").to_dict()["threshold_map"] is None
+    assert (
+        Rig.load(tmp_path / "calib.json", maps="ignore").to_dict()["threshold_map"]
+        is None
+    )
+
+
+def test_astype_casts_physics_and_keeps_host_values_exact():
+    rig = Rig(threshold_noise=0.0123456789, noise_rate_hz=0.3, seed=3).astype(
+        jnp.float32
+    )
+    assert rig.fwhm_nm.dtype == jnp.float32
+    assert float(rig.effects.threshold_noise) == 0.0123456789
+    assert rig.effects.threshold_noise.dtype == np.float64 and int(rig.seed) == 3
+    assert rig.to_dict()["noise_rate_hz"] == 0.3
