@@ -95,7 +95,7 @@ def run_case(sensor: dict, size, seed: int, band_known: bool = True) -> dict:
     # What reaches the sensor: the scene through the optics (the same cube when the
     # sensor has no PSF). `reconstruct` deblurs by the calibrated PSF (a Wiener filter:
     # part of the blur is undone, the rest is lost to noise).
-    optics = scene.blurred(true.effects.psf_sigma_px).truth_cube(true.grid)
+    optics = scene.blurred(float(true.effects.psf_sigma_px)).truth_cube(true.grid)
     t0 = time.perf_counter()
     try:
         res = ev.calibrate(gray, chart, user_init(sensor, true, band_known))
