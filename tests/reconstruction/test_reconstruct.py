@@ -79,9 +79,10 @@ def test_event_rows_vanish_at_the_truth(capture):
         cfg = ProblemConfig(alpha_int=0.0, alpha_spec=0.0, ridge=0.0)
         batches, _, _ = group_pixels(events, t_start_us=0, chunk_pixels=64)
         offsets = np.asarray(rig0.column_offsets(events.width))
+        system = eqx.filter_jit(pixel_system)  # one compilation, not op by op
         for b in batches:
             for i in np.nonzero(b.pixel >= 0)[0]:
-                gram, _, _ = pixel_system(
+                gram, _, _ = system(
                     rig0,
                     table,
                     cfg,
@@ -89,7 +90,7 @@ def test_event_rows_vanish_at_the_truth(capture):
                         jnp.asarray(b.t_us[i]),
                         jnp.asarray(b.polarity[i]),
                         jnp.asarray(b.mask[i]),
-                        offsets[b.column[i]],
+                        jnp.asarray(offsets[b.column[i]]),
                         rig0.threshold_on,
                         rig0.threshold_off,
                         0.0,
@@ -231,11 +232,12 @@ def test_reconstruction_gradients_match_finite_differences():
         truth = scene.truth_cube(rig.grid).reshape(-1, rig.channels)[b.pixel[sel]]
         truth = jnp.asarray(truth, jnp.float64)
 
+        @eqx.filter_jit  # compiled once for the 8 finite-difference evaluations
         def loss(r):
             x = reconstruct_pixels(r, *args, width=3, fwhm_bound_nm=50.0)
             return jnp.mean((x - truth) ** 2)
 
-        grad = eqx.filter_grad(loss)(rig)
+        grad = eqx.filter_jit(eqx.filter_grad(loss))(rig)
         for name in ("beta_nm_per_rad", "threshold_on", "baseline_rel", "fwhm_nm"):
             v = float(getattr(rig, name))
             h = 1e-6 * max(abs(v), 1.0)
