@@ -6,8 +6,8 @@ rig's sensor keys, and a `calibration` report) and a sibling `CALIB_thresholds.n
 (per-pixel `threshold_on`, `threshold_off`, `hot_pixels`) that the JSON names under
 `threshold_map`. :func:`load_calibration` reads both; :func:`evhsi_jax.reconstruct`
 takes the result and uses all of it — the same cube as `evhsi reconstruct --calib`.
-A plain :class:`Rig` has no per-pixel maps; one loaded from a calibration file that
-names maps is refused by `reconstruct` (it would silently lose them).
+A plain :class:`Rig` has no per-pixel maps; `Rig.load` refuses a calibration file that
+names maps (they would be silently lost).
 """
 
 from __future__ import annotations
@@ -134,23 +134,27 @@ def load_calibration(path: str | os.PathLike) -> Calibration:
     Any rig key left out takes its default, so a one-key file is a valid calibration
     (global thresholds, no maps)."""
     path = Path(path)
-    rig = Rig.load(path, maps="ignore")  # (validates the file and its JSON)
-    data = json.loads(path.read_text())
+    rig, data = Rig.load_file(path, maps="ignore")
     report = data.get("calibration") or {}
     on = off = hot = None
-    if data.get("threshold_map") is not None:
-        mpath = Path(data["threshold_map"])
+    name = data.get("threshold_map")
+    if name is not None:
+        if not isinstance(name, str):
+            raise ValueError(
+                f"{path}: rig key 'threshold_map' must be null or a file name"
+            )
+        mpath = Path(name)
         if not mpath.is_absolute():
             mpath = path.parent / mpath
         if not mpath.is_file():
             raise ValueError(f"{path}: threshold map file not found: {mpath}")
-        data = read_npz(mpath, "threshold map file")
+        maps = read_npz(mpath, "threshold map file")
         try:
-            if {"threshold_on", "threshold_off"} <= set(data):
-                on = np.asarray(data["threshold_on"], np.float64)
-                off = np.asarray(data["threshold_off"], np.float64)
-            if "hot_pixels" in data:
-                hot = np.asarray(data["hot_pixels"], bool)
+            if {"threshold_on", "threshold_off"} <= set(maps):
+                on = np.asarray(maps["threshold_on"], np.float64)
+                off = np.asarray(maps["threshold_off"], np.float64)
+            if "hot_pixels" in maps:
+                hot = np.asarray(maps["hot_pixels"], bool)
         except (TypeError, ValueError) as err:
             raise ValueError(f"{mpath}: maps must be numeric ({err})") from None
         if on is None and hot is None:

@@ -199,16 +199,6 @@ class SensorEffects(eqx.Module):
         """The values as Python floats, by attribute (for host code)."""
         return types.SimpleNamespace(**self.as_dict())
 
-    def replace(self, **values) -> SensorEffects:
-        return SensorEffects(**{**self.as_dict(), **values})
-
-    @property
-    def ideal(self) -> bool:
-        return self.as_dict() == _IDEAL.as_dict()
-
-
-_IDEAL = SensorEffects()
-
 
 def skewed_band_profile(fwhm_nm: float, skew: float, n: int = 161) -> dict:
     """A skew-normal band profile with the given FWHM (peak 1), as the rig's
@@ -365,12 +355,6 @@ class Rig(eqx.Module):
                 "rig key 'threshold_map': a rig holds no per-pixel maps; read a "
                 "calibration file pair with evhsi_jax.load_calibration(path)"
             )
-        gain = cfg["channel_gain"]
-        # always an array (ones: no correction), so the tree's structure is the same
-        # with and without a white-reference correction
-        self.channel_gain = np.asarray(
-            np.ones(self.grid.channels) if gain is None else gain, np.float64
-        )
         self.camera_response = jnp.asarray(d, dtype=float)
         self.lamp = jnp.asarray(e, dtype=float)
         for k in (
@@ -390,13 +374,11 @@ class Rig(eqx.Module):
         self.band_profile = (
             None if prof is None else (tuple(prof["offset_nm"]), tuple(prof["values"]))
         )
-        self.effects = SensorEffects(**{k: cfg[k] for k in EFFECT_KEYS})
         offs = cfg["column_offsets_us"]
         self.column_offsets_us = None if offs is None else jnp.asarray(offs, float)
         self.samples_per_sweep = cfg["samples_per_sweep"]
-        self.threshold_sigma = np.asarray(float(cfg["threshold_sigma"]), np.float64)
-        self.noise_rate_hz = np.asarray(float(cfg["noise_rate_hz"]), np.float64)
-        self.seed = np.asarray(int(cfg["seed"]), np.int64)
+        for k, v in _host_leaves(cfg).items():
+            setattr(self, k, v)
         self.reset_mode = cfg["reset_mode"]
 
     def with_leaves(self, **values) -> Rig:
@@ -412,7 +394,7 @@ class Rig(eqx.Module):
             return self
         leaves = {
             f.name for f in dataclasses.fields(self) if not f.metadata.get("static")
-        } - set(HOST_FIELDS)
+        } - {*HOST_FIELDS, "effects"}
         bad = sorted(set(values) - leaves)
         if bad:
             raise AttributeError(f"not array leaves of Rig: {bad}")
@@ -453,21 +435,7 @@ class Rig(eqx.Module):
         cfg = _validated(
             {**DEFAULTS, "channels": self.channels, **self._host_dict(), **values}
         )
-        fx = {k: cfg[k] for k in EFFECT_KEYS}
-        return self._replaced(
-            dict(
-                threshold_sigma=np.asarray(float(cfg["threshold_sigma"]), np.float64),
-                noise_rate_hz=np.asarray(float(cfg["noise_rate_hz"]), np.float64),
-                seed=np.asarray(int(cfg["seed"]), np.int64),
-                channel_gain=np.asarray(
-                    np.ones(self.channels)
-                    if cfg["channel_gain"] is None
-                    else cfg["channel_gain"],
-                    np.float64,
-                ),
-                effects=SensorEffects(**fx),
-            )
-        )
+        return self._replaced(_host_leaves(cfg))
 
     def _host_dict(self) -> dict:
         return {
@@ -582,6 +550,12 @@ class Rig(eqx.Module):
         would silently use the global thresholds): load it with
         :func:`evhsi_jax.load_calibration`, or pass `maps="ignore"` to read its rig
         alone (e.g. to simulate with a calibrated rig)."""
+        return cls.load_file(path, maps=maps)[0]
+
+    @classmethod
+    def load_file(cls, path: str | os.PathLike, *, maps: str = "error"):
+        """:meth:`load`, also returning the file's JSON object (for what a rig does
+        not hold: the `calibration` report, the `threshold_map` name)."""
         if maps not in ("error", "ignore"):
             raise ValueError(f"maps must be 'error' or 'ignore', got {maps!r}")
         path = Path(path)
@@ -598,9 +572,9 @@ class Rig(eqx.Module):
                     f"({data['threshold_map']}) that a bare rig would ignore: load it "
                     "with evhsi_jax.load_calibration(path)"
                 )
-            data = {**data, "threshold_map": None}
+        rig_keys = {**data, "threshold_map": None} if isinstance(data, dict) else data
         try:
-            return cls.from_dict(data)
+            return cls.from_dict(rig_keys), data
         except ValueError as err:
             raise ValueError(f"{path}: {err}") from None
 
@@ -709,6 +683,22 @@ def _band_profile(prof, cfg):
     ):
         raise ValueError(msg)
     return {"offset_nm": off.tolist(), "values": (val / val.max()).tolist()}
+
+
+def _host_leaves(cfg: dict) -> dict:
+    """The host-side fields of a rig from validated keys: 0-d float64 (int64 seed) NumPy
+    leaves; `channel_gain` always an array (ones: no correction), so the tree's
+    structure is the same with and without a white-reference correction."""
+    gain = cfg["channel_gain"]
+    return {
+        "threshold_sigma": np.asarray(float(cfg["threshold_sigma"]), np.float64),
+        "noise_rate_hz": np.asarray(float(cfg["noise_rate_hz"]), np.float64),
+        "seed": np.asarray(int(cfg["seed"]), np.int64),
+        "channel_gain": np.asarray(
+            np.ones(cfg["channels"]) if gain is None else gain, np.float64
+        ),
+        "effects": SensorEffects(**{k: cfg[k] for k in EFFECT_KEYS}),
+    }
 
 
 def _validated(cfg: dict) -> dict:

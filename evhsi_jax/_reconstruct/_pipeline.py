@@ -430,7 +430,6 @@ def reconstruct(
     dtype = rig.fwhm_nm.dtype  # float32 or float64: the rig decides
     table = band_table(rig).channels(rig.grid.sub)
     noise_j = None if noise is None else jnp.asarray(noise, dtype)
-    krig = rig
     thr_on = (
         np.full(h * w, float(rig.threshold_on))
         if threshold_on_map is None
@@ -464,7 +463,7 @@ def reconstruct(
             jnp.asarray(thr_off[pix], dtype),
             jnp.asarray(-d, dtype),
         )
-        x, kkt = solve(krig, table, cfg, spec, sub, px, sweeps, noise_j)
+        x, kkt = solve(rig, table, cfg, spec, sub, px, sweeps, noise_j)
         x, kkt = np.asarray(x), np.asarray(kkt)
         failed = valid & ~np.all(np.isfinite(x), axis=1)
         if failed.any() and spec.name not in ("svd", "unconstrained"):
@@ -474,7 +473,7 @@ def reconstruct(
             n_pad = 1 << int(math.ceil(math.log2(idx.size)))  # few compiled sizes
             sel = np.concatenate([idx, np.full(n_pad - idx.size, idx[0])])
             xr, kr = _solve_robust(
-                krig,
+                rig,
                 table,
                 cfg,
                 max(spec.iters, 48),

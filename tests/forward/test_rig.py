@@ -313,3 +313,11 @@ def test_astype_casts_physics_and_keeps_host_values_exact():
     assert float(rig.effects.threshold_noise) == 0.0123456789
     assert rig.effects.threshold_noise.dtype == np.float64 and int(rig.seed) == 3
     assert rig.to_dict()["noise_rate_hz"] == 0.3
+
+
+def test_load_calibration_refuses_a_map_name_that_is_not_a_file_name(tmp_path):
+    from evhsi_jax import load_calibration
+
+    (tmp_path / "calib.json").write_text(json.dumps({"threshold_map": 5}))
+    with pytest.raises(ValueError, match="file name"):
+        load_calibration(tmp_path / "calib.json")
