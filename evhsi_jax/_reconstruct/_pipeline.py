@@ -149,11 +149,44 @@ def select_sweeps(
     return int(ks[first]), n, int(ks.size - n)
 
 
+#: Pixels per chunk and per `lax.map` step on a CPU and on an accelerator (GPU/TPU).
+#: CPU: 128 pixels' matrices (~3 MB in float32) stay in the cache; chunks of 2048
+#: bound the padded work of the last chunk of a bucket. GPU: one vmapped step of
+#: 2^17 pixels fills the device (a 1280x720 sweep is ~7 chunks); memory ~30 kB per
+#: pixel and slot bucket, a few GB (experiments/bench_gpu.py).
+CPU_BATCH = (2048, 128)
+ACCELERATOR_BATCH = (1 << 17, 1 << 17)
+
+
+def batch_sizes(
+    chunk_pixels: int | None, sub_batch: int | None, mesh=None
+) -> tuple[int, int]:
+    """`(chunk_pixels, sub_batch)` with `None` replaced by the default of the devices
+    that will run the solve (the mesh's, else JAX's default backend)."""
+    if mesh is not None:
+        platform = next(iter(mesh.devices.flat)).platform
+    else:
+        platform = jax.default_backend()
+    chunk, sub = CPU_BATCH if platform == "cpu" else ACCELERATOR_BATCH
+    chunk = chunk if chunk_pixels is None else int(chunk_pixels)
+    sub = min(sub, chunk) if sub_batch is None else int(sub_batch)
+    if chunk < 1 or sub < 1:
+        raise ValueError("chunk_pixels and sub_batch must be >= 1")
+    return chunk, sub
+
+
 def _no_event_answer(rig: Rig, m: int) -> float:
     """Reflectance for a pixel without events: half the largest flat reflectance that
     stays below the ON threshold (a white-normalised peak of ρ gives ρ)."""
     base = float(rig.baseline_level)
     return 0.5 * base * math.expm1(float(rig.threshold_on))
+
+
+#: Matrix products of the per-pixel problems in full float32 (GPUs otherwise round
+#: float32 products to TF32's 10-bit mantissa: measured on an H100, only 77 % of a
+#: 1280x720 ColorChecker's pixels stayed within 0.1° of a float64 solve; CPUs are
+#: unaffected).
+MATMUL_PRECISION = "highest"
 
 
 @eqx.filter_jit
@@ -246,7 +279,8 @@ def _solve_chunk(
 
     n = px.t_us.shape[0]
     xs = jax.tree.map(lambda a: a.reshape((n // sub, sub) + a.shape[1:]), px)
-    x, kkt = jax.lax.map(one_batch, xs)
+    with jax.default_matmul_precision(MATMUL_PRECISION):
+        x, kkt = jax.lax.map(one_batch, xs)
     return x.reshape(n, -1), kkt.reshape(n)
 
 
@@ -271,7 +305,8 @@ def _solve_robust(
         x = _solvers.active_set(q_mat, q_vec, iters=iters, robust=True)
         return x, _solvers.kkt_residual(q_mat, q_vec, x)
 
-    return jax.lax.map(one, px)
+    with jax.default_matmul_precision(MATMUL_PRECISION):
+        return jax.lax.map(one, px)
 
 
 def _augmented_gram(rig, table, cfg, px: PixelEvents, sweeps):
@@ -321,8 +356,8 @@ def reconstruct(
     threshold_off_map: np.ndarray | None = None,
     t_start_us: int | None = None,
     reference_us: np.ndarray | None = None,
-    chunk_pixels: int = 2048,
-    sub_batch: int = 128,
+    chunk_pixels: int | None = None,
+    sub_batch: int | None = None,
     progress: bool = False,
     return_info: bool = False,
     mesh=None,
@@ -354,6 +389,9 @@ def reconstruct(
       one needs (:func:`evhsi_jax.reconstruct_sweeps`). Default: all at `t_start_us`.
     - `chunk_pixels`: pixels per compiled chunk (memory ∝ chunk × events per pixel).
     - `sub_batch`: pixels per `lax.map` step inside a chunk.
+      Defaults by the device kind (:func:`batch_sizes`): 2048 / 128 on a CPU (each
+      step's matrices stay in cache), 131072 / 131072 on a GPU (one step per chunk:
+      a GPU needs tens of thousands of pixels in flight).
     - `progress`: show a progress bar.
     - `return_info`: also return a :class:`ReconstructionInfo`.
     - `deblur`: undo the optics' blur, a Gaussian PSF of the rig's `psf_sigma_px`
@@ -411,6 +449,7 @@ def reconstruct(
         t_start_us = int(round(t_start_us + first * period))
         stop = int(math.ceil(t_start_us + sweeps * period))
         events = events.time_window(t_start_us, stop)
+    chunk_pixels, sub_batch = batch_sizes(chunk_pixels, sub_batch, mesh)
     sub = max(1, min(sub_batch, chunk_pixels))
     solve, n_dev = _solve_chunk, 1
     if mesh is not None:

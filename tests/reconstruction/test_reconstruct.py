@@ -157,6 +157,44 @@ def test_buckets_follow_each_pixels_event_count(capture):
         assert c <= k and (k == 16 or c > k // 2)  # smallest bucket that fits
 
 
+@pytest.mark.parametrize("max_events", [None, 5])
+def test_grouping_kernels_match_the_numpy_reference(capture, max_events):
+    # The numba counting sort and slot filling must give the NumPy path's batches bit
+    # for bit (order within a pixel kept, padding, truncation to max_events).
+    from evhsi_jax._io._numba import numba_available, use_backend
+
+    if not numba_available():
+        pytest.skip("numba is not importable here")
+    _, _, events, _ = capture
+    kw = dict(t_start_us=3, chunk_pixels=32, min_chunk=8, max_events=max_events)
+    with use_backend("numpy"):
+        ref, counts_ref, _ = group_pixels(events, **kw)
+    with use_backend("numba"):
+        got, counts, _ = group_pixels(events, **kw)
+    np.testing.assert_array_equal(counts, counts_ref)
+    assert len(got) == len(ref)
+    for a, b in zip(got, ref):
+        for f in ("pixel", "column", "t_us", "polarity", "mask", "count"):
+            x, y = getattr(a, f), getattr(b, f)
+            assert x.dtype == y.dtype and x.shape == y.shape, f
+            np.testing.assert_array_equal(x, y, err_msg=f)
+
+
+def test_batch_sizes_follow_the_device_kind():
+    from evhsi_jax._reconstruct._pipeline import (
+        ACCELERATOR_BATCH,
+        CPU_BATCH,
+        batch_sizes,
+    )
+
+    assert batch_sizes(None, None) == CPU_BATCH  # the suite runs on a CPU
+    assert batch_sizes(100, None) == (100, 100)  # the sub-batch never exceeds a chunk
+    assert batch_sizes(None, 7) == (CPU_BATCH[0], 7)
+    assert ACCELERATOR_BATCH[0] > CPU_BATCH[0]
+    with pytest.raises(ValueError, match=">= 1"):
+        batch_sizes(0, None)
+
+
 def _single_pixel_events(times, pols, width=1, height=1):
     return ev.EventStream(
         x=np.zeros(len(times), int),

@@ -1,0 +1,53 @@
+"""numba kernels of :func:`._pixels.group_pixels` (imported on first use).
+
+Both replace NumPy steps whose cost grows faster than the event count or that make
+several passes: a stable sort of the events by pixel (a counting sort: one pass to count,
+one to place, O(n) against NumPy's O(n log n) merge sort — 1.2 s of 2 for 6.4 M events)
+and the filling of a bucket's padded slots (one pass over its pixels' events instead of
+a gather through an `(n, k)` index array). The NumPy code in `_pixels` is the reference;
+the tests run both. Kernels are marked `no_type_check` so that the jaxtyping import
+hook of the test suite leaves them to numba.
+"""
+
+from __future__ import annotations
+
+from typing import no_type_check
+
+import numpy as np
+
+from .._io import njit
+
+
+@njit
+@no_type_check
+def sort_by_pixel(pix, n_pix, t_us, t_start_us, centre, sgn):
+    """The events' relative times (+ `centre`) and signs sorted by pixel, time order
+    kept within a pixel: a counting sort that writes each event once to its place."""
+    start = np.zeros(n_pix + 1, np.int64)
+    for i in range(pix.size):
+        start[pix[i] + 1] += 1
+    for p in range(n_pix):
+        start[p + 1] += start[p]
+    t_sorted = np.empty(pix.size, np.float64)
+    s_sorted = np.empty(pix.size, np.int8)
+    for i in range(pix.size):
+        p = pix[i]
+        j = start[p]
+        t_sorted[j] = np.float64(t_us[i] - t_start_us) + centre
+        s_sorted[j] = sgn[i]
+        start[p] = j + 1
+    return t_sorted, s_sorted
+
+
+@njit
+@no_type_check
+def fill_slots(sel, starts, use, t_sorted, s_sorted, tt, pp, mask):
+    """Row r of the padded arrays gets the first `use[sel[r]]` events of pixel
+    `sel[r]` (its events start at `starts[p]` of the sorted arrays)."""
+    for r in range(sel.size):
+        p = sel[r]
+        s = starts[p]
+        for j in range(use[p]):
+            tt[r, j] = t_sorted[s + j]
+            pp[r, j] = s_sorted[s + j]
+            mask[r, j] = True

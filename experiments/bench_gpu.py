@@ -1,0 +1,221 @@
+"""One full-sensor sweep on whatever device JAX runs on (designed for one GPU).
+
+Setup: the paper rig (`Rig()`), one sweep of the ColorChecker at `--size` (default
+720×1280), simulated on the device, then reconstructed with `ev.reconstruct` (solver
+`auto`, float32, the sensor's true per-pixel thresholds as after a calibration, batch
+sizes by device kind: `evhsi_jax.reconstruction.batch_sizes`). Reported, each the median
+of `--repeats` warm runs in this process after one cold run (compilation):
+
+- `simulate`: `ev.simulate` of the sweep (events back on the host);
+- `reconstruct`: the whole `ev.reconstruct` call (events in host memory → cube in host
+  memory), and its parts: screening + per-pixel grouping on the host, and the device
+  work (assembly + solve of every chunk, inputs already on the device);
+- the same with the noise-aware path (a calibration saying threshold noise 0.01 and
+  jitter 5 µs: weighted rows, Huber reweighting) on the same events;
+- accuracy: SAM/PSNR to the truth, and the float32 cube against a float64 solve of
+  the same events (share of pixels within 0.1° SAM);
+- the device's float32 matmul rate (8192² on a GPU, 1024² on a CPU) in the same run.
+
+    python experiments/bench_gpu.py [--size 720x1280] [--repeats 3] [--out PATH]
+
+Writes `experiments/results/bench_gpu.json` (or `--out`). On a CPU use a small
+`--size` (the full sensor takes minutes there); the GPU figures in the README were
+measured with the `device` tool on one H100.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import statistics
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
+
+import evhsi_jax as ev
+from evhsi_jax._model import band_table
+from evhsi_jax._reconstruct import _pipeline as pipe
+from evhsi_jax._reconstruct._pixels import PixelEvents, group_pixels
+
+
+def matmul_gflops(repeats: int = 5) -> float:
+    n = 1024 if jax.default_backend() == "cpu" else 8192
+    a = jr.normal(jr.key(0), (n, n), jnp.float32)
+    f = jax.jit(lambda a: a @ a)
+    f(a).block_until_ready()
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        f(a).block_until_ready()
+        times.append(time.perf_counter() - t)
+    return 2 * n**3 / statistics.median(times) / 1e9
+
+
+def timed(fn, repeats):
+    """(result, cold seconds, warm times)."""
+    t = time.perf_counter()
+    out = fn()
+    cold = time.perf_counter() - t
+    warm = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        out = fn()
+        warm.append(time.perf_counter() - t)
+    return out, cold, warm
+
+
+def device_parts(events, rig, maps, repeats):
+    """Host (screen + group) and device (assembly + solve) time of one reconstruction,
+    timed apart: the chunks' inputs are put on the device before the device clock
+    starts."""
+    noise = pipe.noise_model(rig)
+    chunk, sub = pipe.batch_sizes(None, None)
+
+    def host():
+        screened, _, _ = pipe.screen_events(events, rig, 0, noise, 1, None)
+        return group_pixels(screened, t_start_us=0, chunk_pixels=chunk, min_chunk=sub)
+
+    (batches, _, _), _, host_t = timed(host, repeats)
+    dtype = rig.fwhm_nm.dtype
+    offs = np.asarray(rig.column_offsets(events.width), np.float64)
+    on, off = (np.asarray(m, np.float64).reshape(-1) for m in maps)
+    pxs = []
+    for b in batches:
+        pix = np.where(b.pixel >= 0, b.pixel, 0)
+        pxs.append(
+            jax.device_put(
+                PixelEvents(
+                    np.where(b.mask, b.t_us, 0.0).astype(dtype),
+                    b.polarity.astype(np.int32),
+                    b.mask,
+                    offs[b.column].astype(dtype),
+                    on[pix].astype(dtype),
+                    off[pix].astype(dtype),
+                    np.zeros(b.pixel.shape, dtype),
+                )
+            )
+        )
+    table = band_table(rig).channels(rig.grid.sub)
+    spec = pipe.solver_spec("auto")
+    noise_j = None if noise is None else jnp.asarray(noise, dtype)
+
+    def device():
+        outs = [
+            pipe._solve_chunk(
+                rig, table, pipe.ProblemConfig(), spec, min(sub, p.t_us.shape[0]), p, 1,
+                noise_j,
+            )
+            for p in pxs
+        ]  # fmt: skip
+        return jax.block_until_ready(outs)
+
+    _, cold, dev_t = timed(device, repeats)
+    return {
+        "host_screen_group_s": statistics.median(host_t),
+        "device_assemble_solve_s": statistics.median(dev_t),
+        "device_cold_s": cold,
+        "device_times_s": dev_t,
+        "chunks": [list(p.t_us.shape) for p in pxs],
+    }
+
+
+def sam_deg(a, b):
+    a = a.reshape(-1, a.shape[-1]).astype(np.float64)
+    b = b.reshape(-1, b.shape[-1]).astype(np.float64)
+    cos = np.sum(a * b, 1) / np.maximum(
+        np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1), 1e-30
+    )
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--size", default="720x1280")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--out", default="experiments/results/bench_gpu.json")
+    args = ap.parse_args()
+    h, w = ev.forward.parse_size(args.size)
+    dev = jax.devices()[0]
+    report = {
+        "size": [h, w],
+        "backend": jax.default_backend(),
+        "device": getattr(dev, "device_kind", str(dev)),
+        "jax": jax.__version__,
+        "host": platform.processor() or platform.machine(),
+        "batch_sizes": list(pipe.batch_sizes(None, None)),
+        "matmul_gflops_f32": [matmul_gflops()],
+    }
+    print(report, flush=True)
+    rig = ev.Rig()
+    scene = ev.load_scene("colorchecker", (h, w))
+    truth = scene.truth_cube(rig.grid)
+
+    def sim():
+        return ev.simulate(scene, rig, sweeps=1, key=jr.key(0), return_info=True)
+
+    (events, info), cold, warm = timed(sim, args.repeats)
+    report["simulate"] = {
+        "cold_s": cold,
+        "median_s": statistics.median(warm),
+        "times_s": warm,
+        "events": len(events),
+    }
+    print("simulate", report["simulate"], flush=True)
+    maps = (info.threshold_on, info.threshold_off)
+    cases = {
+        "ideal path": rig,
+        "noise path": ev.Rig(threshold_noise=0.01, timestamp_jitter_us=5.0),
+    }
+    for name, cal in cases.items():
+
+        def rec(cal=cal):
+            return ev.reconstruct(
+                events, cal, threshold_on_map=maps[0], threshold_off_map=maps[1]
+            )
+
+        cube, cold, warm = timed(rec, args.repeats)
+        med = statistics.median(warm)
+        metrics = ev.evaluate(cube, truth)
+        row = {
+            "cold_s": cold,
+            "median_s": med,
+            "times_s": warm,
+            "px_per_s": h * w / med,
+            "sam_deg": metrics["sam_deg"],
+            "psnr_db": metrics["psnr_db"],
+            **device_parts(events, cal, maps, args.repeats),
+        }
+        row["device_px_per_s"] = h * w / row["device_assemble_solve_s"]
+        report[name] = row
+        print(name, {k: v for k, v in row.items() if "times" not in k}, flush=True)
+        if name == "ideal path":
+            cube32 = cube
+    # float32 against a float64 solve of the same events (whole image).
+    jax.config.update("jax_enable_x64", True)
+    rig64 = rig.astype(jnp.float64)
+    t = time.perf_counter()
+    cube64 = ev.reconstruct(events, rig64, threshold_on_map=maps[0],
+                            threshold_off_map=maps[1])  # fmt: skip
+    t64 = time.perf_counter() - t
+    d = sam_deg(cube32, cube64)
+    report["float64_check"] = {
+        "seconds_cold": t64,
+        "share_within_0.1deg": float(np.mean(d <= 0.1)),
+        "median_deg": float(np.median(d)),
+        "max_deg": float(np.max(d)),
+        "float64_sam_deg": ev.evaluate(cube64, truth)["sam_deg"],
+    }
+    print("float64", report["float64_check"], flush=True)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(report, indent=2))
+    print("wrote", out)
+
+
+if __name__ == "__main__":
+    main()
