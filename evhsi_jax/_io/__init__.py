@@ -23,9 +23,9 @@ from ._files import describe_events as describe_events
 from ._files import replay_raw as replay_raw
 from ._files import write_events as write_events
 from ._header import RawHeader as RawHeader
+from ._header import parse_header as parse_header
 from ._numba import njit as njit
 from ._numba import use_numba as use_numba
-from ._header import parse_header as parse_header
 from ._reader import DEFAULT_CHUNK_BYTES as DEFAULT_CHUNK_BYTES
 from ._reader import EventReader as EventReader
 from ._reader import iter_events as iter_events
