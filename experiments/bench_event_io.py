@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from evhsi_jax import EventStream
-from evhsi_jax._io._numba import use_backend  # the benchmark compares the two paths
+from evhsi_jax._base._numba import use_backend  # the benchmark compares the two paths
 from evhsi_jax.io import EventReader, evt3_bytes, write_evt3
 
 OURS, REFERENCE = "evhsi_jax (numba)", "evhsi_jax (NumPy)"

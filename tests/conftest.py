@@ -19,6 +19,11 @@ jax.config.update("jax_numpy_dtype_promotion", "strict")
 
 from evhsi_jax._base._cache import cache_dir, enable_compilation_cache  # noqa: E402
 
+# Start JAX's backend now, with the environment's device count: `evhsi reconstruct`
+# run in-process asks for one XLA host device per core (its default `--devices`),
+# which must not depend on which test happens to start JAX first.
+jax.devices()
+
 if cache_dir() is not None:
     os.environ.setdefault("EVHSI_CACHE_DIR", str(cache_dir()))
 enable_compilation_cache()
@@ -43,7 +48,7 @@ def shared_data():
 def io_backend(request):
     """Run a module's event-file tests with the numba kernels and the NumPy reference
     (`pytestmark = pytest.mark.usefixtures("io_backend")`)."""
-    from evhsi_jax._io import _numba as _jit
+    from evhsi_jax._base import _numba as _jit
 
     if request.param == "numba" and not _jit.numba_available():
         pytest.skip("no numba")

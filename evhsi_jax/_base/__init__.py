@@ -1,7 +1,9 @@
 """Stage 0, shared base: atomic file writing and storage helpers, spectral grids and
 resampling, reference spectra, metrics, hardware limits, the compilation cache and the
-device-mesh plumbing (`shard`). Imports nothing else from the package."""
+device-mesh plumbing (`shard`) and the switch between numba kernels and their NumPy
+references (`numba_kernels`). Imports nothing else from the package."""
 
+from . import _numba as numba_kernels  # noqa: F401  (compiled-kernel switch)
 from . import _shard as shard  # noqa: F401  (the mesh plumbing as a namespace)
 from ._cache import enable_compilation_cache as enable_compilation_cache
 from ._limits import check_fits as check_fits
@@ -12,10 +14,14 @@ from ._metrics import rms as rms
 from ._metrics import sam_deg as sam_deg
 from ._metrics import sam_map_deg as sam_map_deg
 from ._metrics import ssim as ssim
+from ._numba import njit as njit
+from ._numba import readonly as readonly
+from ._numba import use_numba as use_numba
 from ._reference_spectra import reference_spectra as reference_spectra
 from ._shard import initialize_distributed as initialize_distributed
 from ._shard import is_main_process as is_main_process
 from ._shard import pixel_mesh as pixel_mesh
+from ._sorting import stable_argsort_int as stable_argsort_int
 from ._spectra import SpectralGrid as SpectralGrid
 from ._spectra import band_integrate as band_integrate
 from ._spectra import band_integrate_matrix as band_integrate_matrix

@@ -5,7 +5,7 @@ of DESIGN.md; bounded-memory streaming and time-window reads; sweep segmentation
 bandwidth accounting. Cubes: `.npz`, ENVI and Zarr (`_cubefile`); pictures: sRGB
 renderings and PNGs (`_render`). See each module's docstring for the format decisions. The hot
 loops run as numba kernels by default, with the vectorised NumPy code as reference and
-fallback (`EVHSI_NO_NUMBA=1`; see `_numba`).
+fallback (`EVHSI_NO_NUMBA=1`; see `_base/_numba`).
 """
 
 from ._bandwidth import bandwidth_summary as bandwidth_summary
@@ -24,8 +24,6 @@ from ._files import replay_raw as replay_raw
 from ._files import write_events as write_events
 from ._header import RawHeader as RawHeader
 from ._header import parse_header as parse_header
-from ._numba import njit as njit
-from ._numba import use_numba as use_numba
 from ._reader import DEFAULT_CHUNK_BYTES as DEFAULT_CHUNK_BYTES
 from ._reader import EventReader as EventReader
 from ._reader import iter_events as iter_events

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import _numba
+from .._base import numba_kernels as _numba
 from ._chunks import DecodedChunk, ScannedChunk, apply_time, expand_events
 from ._evt2 import Evt2State, carry_evt2_state, scan_evt2_words
 from ._evt3_decode import Evt3State, carry_evt3_state, scan_evt3_words

@@ -27,6 +27,7 @@ import dataclasses
 
 import numpy as np
 
+from .._base import readonly
 from ._chunks import DecodedChunk
 from ._decode_kernels import (
     C_BEFORE,
@@ -49,7 +50,6 @@ from ._decode_kernels import (
 )
 from ._evt2 import Evt2State
 from ._evt3_decode import Evt3State
-from ._numba import readonly
 from ._report import DecodeError, DecodeReport
 
 __all__ = ["decode_words", "decode_all", "count_words"]

@@ -22,7 +22,7 @@ from typing import no_type_check
 
 import numpy as np
 
-from ._numba import njit
+from .._base import njit
 
 __all__ = ["bound3", "bound2", "evt3", "evt2"]
 

@@ -19,7 +19,7 @@ from typing import no_type_check
 
 import numpy as np
 
-from ._numba import njit, readonly
+from .._base import njit, readonly
 
 __all__ = ["encode_block", "order_and_min"]
 

@@ -41,8 +41,8 @@ from collections.abc import Iterator
 import numpy as np
 
 from .._base import atomic_write
+from .._base import numba_kernels as _numba
 from .._model import EventStream
-from . import _numba
 from ._header import format_header
 
 __all__ = ["encode_evt3_words", "evt3_word_count", "write_evt3", "MAX_EVT3_SIZE"]

@@ -15,7 +15,7 @@ from typing import no_type_check
 
 import numpy as np
 
-from .._io import njit
+from .._base import njit
 
 
 @njit

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from .._io import use_numba
+from .._base import use_numba
 from .._model import EventStream
 
 __all__ = ["PixelBatch", "PixelEvents", "group_pixels", "bucket_sizes"]

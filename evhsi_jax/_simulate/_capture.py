@@ -25,7 +25,7 @@ from jax.sharding import PartitionSpec as P
 from jaxtyping import PRNGKeyArray
 from tqdm.auto import tqdm
 
-from .._base import band_integrate_matrix, check_fits, shard
+from .._base import band_integrate_matrix, check_fits, shard, stable_argsort_int
 from .._model import (
     TABLE_STEP_NM,
     BandTable,
@@ -240,12 +240,18 @@ def _chunk_kernel(
     return fired, tc, up, state
 
 
+#: Columns per compiled chunk by device kind: on a CPU 16 columns keep one chunk's
+#: scan state in cache (experiments/bench_simulate.py); a GPU needs ~10^5 pixels per
+#: step of the scan to be busy (256 columns x 720 rows, ~1 GB per chunk).
+CHUNK_COLUMNS = {"cpu": 16, "accelerator": 256}
+
+
 def simulate(
     scene: Scene | Sequence[Scene],
     rig: Rig,
     *,
     sweeps: int = 1,
-    chunk_columns: int = 16,
+    chunk_columns: int | None = None,
     progress: bool = False,
     return_info: bool = False,
     mesh=None,
@@ -260,7 +266,10 @@ def simulate(
     - `rig`: the rig (thresholds are drawn per pixel with `rig.threshold_sigma`).
     - `sweeps`: number of sweeps; sweep `s` starts at $s P$ µs, marked by an external
       trigger (id 0, polarity 1) at `round(s * P)`.
-    - `chunk_columns`: columns per chunk (memory ∝ chunk × window length).
+    - `chunk_columns`: columns per chunk (memory ∝ chunk × window length). Default
+      by device kind: 16 on a CPU, 256 on a GPU (`CHUNK_COLUMNS`). With per-crossing
+      threshold noise the noise is drawn per chunk, so captures with different
+      chunks differ in their noise draws (each is a valid draw).
     - `progress`: show a progress bar.
     - `return_info`: also return a :class:`SimulationInfo` (threshold maps, …).
     - `mesh`: a `jax.sharding.Mesh` (:func:`evhsi_jax.sharding.pixel_mesh`): run its
@@ -286,6 +295,10 @@ def simulate(
     h, w = scenes[0].height, scenes[0].width
     if any((s.height, s.width) != (h, w) for s in scenes):
         raise ValueError("all per-sweep scenes must have the same size")
+    if chunk_columns is None:
+        devices = None if mesh is None else list(mesh.devices.flat)
+        platform = jax.default_backend() if mesh is None else devices[0].platform
+        chunk_columns = CHUNK_COLUMNS["cpu" if platform == "cpu" else "accelerator"]
     chunk_columns = max(1, min(int(chunk_columns), w))
     offsets = np.asarray(rig.column_offsets(w), np.float64)
     _check_sweep_fits(rig, offsets)
@@ -434,7 +447,7 @@ def simulate(
         for k, v in zip(("x", "y", "p", "t"), extra):
             out_cols[k].append(v)
     cat = {k: np.concatenate(v) if v else np.zeros(0) for k, v in out_cols.items()}
-    order = np.argsort(cat["t"], kind="stable")
+    order = stable_argsort_int(cat["t"])  # O(n): a counting sort over the µs
     trig = np.round(np.arange(sweeps) * period).astype(np.int64)
     events = EventStream(
         x=cat["x"][order],

@@ -16,11 +16,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from evhsi_jax import EventStream
+from evhsi_jax._base import _numba
 from evhsi_jax._io import (
     DecodeError,
     EventReader,
     _evt3_encode,
-    _numba,
     encode_evt3_words,
     evt3_word_count,
     write_evt3,
@@ -291,3 +291,21 @@ def test_edges_decode_alike(tmp_path, words, header, expect):
     assert got["numba"] == got["numpy"]
     report = got["numpy"][0][1]
     assert {k: report[k] for k in expect} == expect
+
+
+@pytest.mark.parametrize("span", [1, 50, 10**9])
+def test_stable_integer_argsort_matches_numpy(span):
+    # The simulator's O(n) counting sort of event times must give NumPy's stable
+    # permutation (equal keys keep their order); a wide range falls back to NumPy.
+    from evhsi_jax._base import stable_argsort_int
+
+    keys = np.random.default_rng(span).integers(-5, span, 5000)
+    ref = np.argsort(keys, kind="stable")
+    for name in ("numba", "numpy"):
+        if name == "numba" and not _numba.numba_available():
+            continue
+        with _numba.use_backend(name):
+            np.testing.assert_array_equal(stable_argsort_int(keys), ref)
+    assert stable_argsort_int(np.zeros(0)).shape == (0,)
+    with pytest.raises(ValueError, match="integer"):
+        stable_argsort_int(np.array([0.5, 1.5]))

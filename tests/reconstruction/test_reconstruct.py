@@ -161,7 +161,7 @@ def test_buckets_follow_each_pixels_event_count(capture):
 def test_grouping_kernels_match_the_numpy_reference(capture, max_events):
     # The numba counting sort and slot filling must give the NumPy path's batches bit
     # for bit (order within a pixel kept, padding, truncation to max_events).
-    from evhsi_jax._io._numba import numba_available, use_backend
+    from evhsi_jax._base._numba import numba_available, use_backend
 
     if not numba_available():
         pytest.skip("numba is not importable here")

@@ -133,3 +133,7 @@ def test_cli_devices_asks_xla_for_host_devices(monkeypatch):
     assert os.environ["XLA_FLAGS"].endswith("--xla_force_host_platform_device_count=2")
     _cpu_devices(4)  # a count already there wins
     assert "count=4" not in os.environ["XLA_FLAGS"]
+    monkeypatch.setenv("XLA_FLAGS", "")
+    monkeypatch.setattr(os, "sched_getaffinity", lambda _: {0, 1, 2}, raising=False)
+    _cpu_devices(None)  # the default: one host device per usable core
+    assert os.environ["XLA_FLAGS"] == "--xla_force_host_platform_device_count=3"

@@ -1,14 +1,16 @@
 """Choosing between the compiled (numba) kernels and the vectorised NumPy reference.
 
-The hot loops of the event-file layer — EVT 3.0 and EVT 2.0 decoding, EVT 3.0 encoding —
-exist twice: as vectorised NumPy (`_evt3_decode`, `_evt2`, `_evt3_encode`; the reference,
-documented there) and as numba kernels (`_decode_jit`, `_encode_jit`) that make one
-sequential pass carrying the same state word by word. Both give bit-identical events,
+Host-side hot loops — EVT 3.0 and EVT 2.0 decoding and EVT 3.0 encoding (`_io`), the
+simulator's time sort (`_sorting`) and the reconstruction's grouping of events by pixel
+(`_reconstruct/_group_jit`) — exist twice. The event-file ones as vectorised NumPy
+(`_evt3_decode`, `_evt2`, `_evt3_encode`; the reference, documented there) and as numba
+kernels (`_decode_jit`, `_encode_jit`) that make one sequential pass carrying the same
+state word by word. Both give bit-identical events,
 words and `DecodeReport` counters, and raise the same `DecodeError` in strict mode (the
 tests run every case through both). The kernels are the default when numba imports;
 `EVHSI_NO_NUMBA=1` (or `use_backend("numpy")`) selects the NumPy path.
 
-numba is imported lazily, on the first decode or encode, so `import evhsi_jax` does not
+numba is imported lazily, on the first use of a kernel, so `import evhsi_jax` does not
 pay for it, and an import failure (numba missing, or built for another NumPy) only means
 the NumPy path is used. Kernels are compiled on first use and cached on disk
 (`cache=True`: next to this module, or numba's user-wide cache folder when the package
