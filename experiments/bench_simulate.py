@@ -78,14 +78,20 @@ def peak_rss_mb() -> float:
 def profile_sweep(scene, rig, chunk_columns: int) -> dict:
     """Time the parts of one sweep by calling the simulator's own pieces (private
     modules: this is a diagnosis, not an API use)."""
+    import jax
     import jax.numpy as jnp
     import jax.random as jr
 
-    from evhsi_jax import _simulate as sim
+    from evhsi_jax._base import stable_argsort_int
     from evhsi_jax._base._spectra import band_integrate_matrix
     from evhsi_jax._model._illumination import band_table
+    from evhsi_jax._simulate import _capture as sim
 
     h, w = scene.height, scene.width
+    if chunk_columns is None:
+        kind = "cpu" if jax.default_backend() == "cpu" else "accelerator"
+        chunk_columns = sim.CHUNK_COLUMNS[kind]
+    chunk_columns = min(chunk_columns, w)
     offsets = np.asarray(rig.column_offsets(w), np.float64)
     thr_on, thr_off = sim.threshold_maps(rig, h, w, key=jr.key(0))
     n = rig.samples_per_sweep * sim.time_oversampling(rig)
@@ -122,21 +128,27 @@ def profile_sweep(scene, rig, chunk_columns: int) -> dict:
         )
         log_i.block_until_ready()
         t_mid = time.perf_counter()
-        (fired, tc, up), _ = sim._scan_jit(
+        (fired, tc, up), _ = sim._trigger_scan_jit(
             rig,
             log_i,
             jnp.asarray((starts[ci] + np.arange(length)) * dt, jnp.float32),
             jnp.asarray(thr_on[:, cols].T.reshape(-1)),
             jnp.asarray(thr_off[:, cols].T.reshape(-1)),
             None,
+            None,
         )
         fired.block_until_ready()
         t1 = time.perf_counter()
-        fired, tc, up = np.asarray(fired), np.asarray(tc), np.asarray(up)
-        t2 = time.perf_counter()
-        step, pix = np.nonzero(fired)
-        ts.append(np.floor(tc[step, pix]).astype(np.int64))
-        ps.append(up[step, pix])
+        if jax.default_backend() == "cpu":  # the host path: dense arrays, np.nonzero
+            fired, tc, up = np.asarray(fired), np.asarray(tc), np.asarray(up)
+            t2 = time.perf_counter()
+            step, pix = np.nonzero(fired)
+            t_ev, up_ev = tc[step, pix], up[step, pix]
+        else:  # gathered on the device, only the crossings come back ("to_host")
+            step, pix, t_ev, up_ev = sim._fired_events(fired, tc, up, on_host=False)
+            t2 = time.perf_counter()
+        ts.append(np.floor(t_ev).astype(np.int64))
+        ps.append(up_ev)
         t3 = time.perf_counter()
         if i == 0:
             ts, ps = [], []
@@ -146,7 +158,7 @@ def profile_sweep(scene, rig, chunk_columns: int) -> dict:
         parts["to_host"] += t2 - t1
         parts["extract"] += t3 - t2
     t0 = time.perf_counter()
-    np.argsort(np.concatenate(ts), kind="stable")
+    stable_argsort_int(np.concatenate(ts))  # as the simulator does
     parts["sort"] = time.perf_counter() - t0
     parts["window_samples"] = int(length)
     parts["chunks"] = int(n_chunks)
@@ -286,7 +298,9 @@ def main(argv=None) -> int:
     p.add_argument("--size", type=parse_size, default=(720, 1280), help="HxW pixels")
     p.add_argument("--repeats", type=int, default=3, help="warm runs per scene")
     p.add_argument("--scenes", default=",".join(SCENES), help="comma-separated")
-    p.add_argument("--chunk-columns", type=int, default=16)
+    p.add_argument(
+        "--chunk-columns", type=int, default=None, help="default: by device kind"
+    )
     p.add_argument("--profile", action="store_true", help="time the parts of a sweep")
     p.add_argument("--out", type=Path, default=None, help="JSON path")
     p.add_argument("--worker", help=argparse.SUPPRESS)
@@ -314,9 +328,10 @@ def main(argv=None) -> int:
             f"{h}x{w}",
             "--repeats",
             str(args.repeats),
-            "--chunk-columns",
-            str(args.chunk_columns),
-        ] + (["--profile"] if args.profile else [])
+        ]
+        if args.chunk_columns is not None:
+            cmd += ["--chunk-columns", str(args.chunk_columns)]
+        cmd += ["--profile"] if args.profile else []
         print(f"[{name}] running {h}×{w}…", file=sys.stderr, flush=True)
         out = subprocess.run(cmd, capture_output=True, text=True)
         if out.returncode:

@@ -295,9 +295,9 @@ def simulate(
     h, w = scenes[0].height, scenes[0].width
     if any((s.height, s.width) != (h, w) for s in scenes):
         raise ValueError("all per-sweep scenes must have the same size")
+    devices = None if mesh is None else list(mesh.devices.flat)
+    platform = jax.default_backend() if mesh is None else devices[0].platform
     if chunk_columns is None:
-        devices = None if mesh is None else list(mesh.devices.flat)
-        platform = jax.default_backend() if mesh is None else devices[0].platform
         chunk_columns = CHUNK_COLUMNS["cpu" if platform == "cpu" else "accelerator"]
     chunk_columns = max(1, min(int(chunk_columns), w))
     offsets = np.asarray(rig.column_offsets(w), np.float64)
@@ -357,6 +357,7 @@ def simulate(
         desc=f"simulate {h}x{w}x{sweeps}",
     )
     groups = shard.chunk_groups(n_chunks, mesh)  # one chunk each without a mesh
+    on_host = platform == "cpu"
     group_states = [None] * len(groups)
     lowpass_hz = (
         jnp.asarray(fx.photoreceptor_hz, dtype) if fx.photoreceptor_hz > 0 else None
@@ -417,18 +418,16 @@ def simulate(
                     continue
                 done.add(ci)
                 cols = col_index[ci]
-                fired = np.asarray(fired)
-                step, pix = np.nonzero(fired)
+                step, pix, t_ev, up_ev = _fired_events(fired, tc, up, on_host)
                 col_local, row = np.divmod(pix, h)
                 keep = col_local < w - ci * chunk_columns  # drop padded columns
-                step, pix = step[keep], pix[keep]
                 col_local, row = col_local[keep], row[keep]
                 out_cols["x"].append(cols[col_local].astype(np.uint16))
                 out_cols["y"].append(row.astype(np.uint16))
-                out_cols["p"].append(np.asarray(up)[step, pix].astype(np.uint8))
+                out_cols["p"].append(up_ev[keep].astype(np.uint8))
                 # Index first, then widen: converting the whole (t, pixels) array to
                 # float64 cost ~90 MB of copying per full-height chunk.
-                t_abs = s_idx * period + np.asarray(tc)[step, pix].astype(np.float64)
+                t_abs = s_idx * period + t_ev[keep].astype(np.float64)
                 out_cols["t"].append(np.floor(t_abs).astype(np.int64))
                 bar.update(1)
     bar.close()
@@ -464,6 +463,28 @@ def simulate(
         return events
     info = SimulationInfo(thr_on, thr_off, n, length, n_noise, hot, speed_factor)
     return events, info
+
+
+def _fired_events(fired, tc, up, on_host: bool):
+    """`(step, pixel, time, polarity)` of a chunk's crossings, in `np.nonzero(fired)`
+    order. On a CPU the dense `(t, pixels)` arrays are read directly; on an
+    accelerator the crossings are gathered there and only they come back (the dense
+    arrays of a 256-column chunk are ~1 GB: copying them to the host and scanning them
+    took 7.4 s of a 1280x720 sweep on an H100, the device work 0.4 s)."""
+    if on_host:
+        fired, tc, up = np.asarray(fired), np.asarray(tc), np.asarray(up)
+        step, pix = np.nonzero(fired)
+        return step, pix, tc[step, pix], up[step, pix]
+    n = int(jnp.count_nonzero(fired))
+    size = 1 << max(10, (n - 1).bit_length())  # few compiled sizes
+    out = _gather_fired(fired, tc, up, size)
+    return tuple(np.asarray(a)[:n] for a in out)
+
+
+@functools.partial(jax.jit, static_argnums=3)
+def _gather_fired(fired, tc, up, size):
+    step, pix = jnp.nonzero(fired, size=size, fill_value=0)
+    return step, pix, tc[step, pix], up[step, pix]
 
 
 def _noise_events(rig: Rig, h: int, w: int, duration_us: float, *, key):

@@ -11,6 +11,7 @@ import logging
 import math
 
 import jax
+import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
 import pytest
@@ -545,3 +546,19 @@ def test_no_recompilation_for_new_values(cc, sim_default):
         logger.removeHandler(handler)
     assert len(ev) > 100
     assert not [m for m in handler.messages if m.startswith("Compiling")]
+
+
+def test_accelerator_event_extraction_matches_the_host_path():
+    # On a GPU the simulator gathers each chunk's crossings on the device; the events
+    # (order, times, polarities) must be those of the host path.
+    from evhsi_jax._simulate._capture import _fired_events
+
+    rng = np.random.default_rng(0)
+    fired = rng.random((50, 70)) < 0.05
+    tc = rng.random((50, 70)).astype(np.float32)
+    up = rng.random((50, 70)) < 0.5
+    args = (jnp.asarray(fired), jnp.asarray(tc), jnp.asarray(up))
+    for a, b in zip(_fired_events(*args, True), _fired_events(*args, False)):
+        np.testing.assert_array_equal(a, b)
+    empty = _fired_events(jnp.zeros((4, 5), bool), args[1][:4, :5], args[2][:4, :5], False)
+    assert all(a.size == 0 for a in empty)
