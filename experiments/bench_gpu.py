@@ -78,7 +78,9 @@ def device_parts(events, rig, maps, repeats):
 
     def host():
         screened, _, _ = pipe.screen_events(events, rig, 0, noise, 1, None)
-        return group_pixels(screened, t_start_us=0, chunk_pixels=chunk, min_chunk=sub)
+        return group_pixels(  # as `reconstruct` cuts them
+            screened, t_start_us=0, chunk_pixels=chunk, merge_below=chunk // 2
+        )
 
     (batches, _, _), _, host_t = timed(host, repeats)
     dtype = rig.fwhm_nm.dtype
@@ -87,19 +89,16 @@ def device_parts(events, rig, maps, repeats):
     pxs = []
     for b in batches:
         pix = np.where(b.pixel >= 0, b.pixel, 0)
-        pxs.append(
-            jax.device_put(
-                PixelEvents(
-                    np.where(b.mask, b.t_us, 0.0).astype(dtype),
-                    b.polarity.astype(np.int32),
-                    b.mask,
-                    offs[b.column].astype(dtype),
-                    on[pix].astype(dtype),
-                    off[pix].astype(dtype),
-                    np.zeros(b.pixel.shape, dtype),
-                )
-            )
+        arrays = (
+            np.where(b.mask, b.t_us, 0.0).astype(dtype),
+            b.polarity.astype(np.int32),
+            b.mask,
+            offs[b.column].astype(dtype),
+            on[pix].astype(dtype),
+            off[pix].astype(dtype),
+            np.zeros(b.pixel.shape, dtype),
         )
+        pxs.append(PixelEvents(*jax.device_put(arrays)))
     table = band_table(rig).channels(rig.grid.sub)
     spec = pipe.solver_spec("auto")
     noise_j = None if noise is None else jnp.asarray(noise, dtype)

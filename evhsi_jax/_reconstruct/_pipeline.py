@@ -175,6 +175,15 @@ def batch_sizes(
     return chunk, sub
 
 
+@eqx.filter_jit
+def _rig_geometry(rig: Rig, width: int) -> dict:
+    """The rig's period and each column's lit interval (:func:`lit_interval_us`) in
+    one compiled call: evaluated op by op, each scalar operation is a compilation (a
+    cache read) of its own at every start of a process."""
+    arrive, leave = lit_interval_us(rig, rig.column_offsets(width))
+    return {"period_us": rig.period_us, "arrive": arrive, "leave": leave}
+
+
 def _no_event_answer(rig: Rig, m: int) -> float:
     """Reflectance for a pixel without events: half the largest flat reflectance that
     stays below the ON threshold (a white-normalised peak of ρ gives ρ)."""
@@ -312,9 +321,7 @@ def _solve_robust(
 def _augmented_gram(rig, table, cfg, px: PixelEvents, sweeps):
     """$\\hat N^T \\hat N$ of the event rows alone (the paper's SVD system)."""
     bare = dataclasses.replace(cfg, alpha_int=0.0, alpha_spec=0.0, ridge=0.0)
-    q_mat, q_vec, _ = pixel_system(
-        rig, table, bare, px, sweeps, return_gram=True
-    )
+    q_mat, q_vec, _ = pixel_system(rig, table, bare, px, sweeps, return_gram=True)
     return q_mat
 
 
@@ -442,7 +449,7 @@ def reconstruct(
             f"events start at {int(events.t_us[0])} µs, before the sweep start "
             f"{t_start_us} µs"
         )
-    period = float(rig.period_us)
+    period = float(_rig_geometry(rig, w)["period_us"])
     n_all = len(events)
     first, sweeps, left_out = select_sweeps(events.t_us, t_start_us, period)
     if first or left_out:
@@ -459,16 +466,29 @@ def reconstruct(
     screened, hot, n_dropped = screen_events(
         events, rig, t_start_us, noise, sweeps, cal.hot_pixels
     )
+    # Every chunk is full, so each bucket of slots has one compiled shape (a partial
+    # last chunk would be one more trace and compilation per bucket and image size);
+    # an image with fewer active pixels than a chunk gets the smallest chunk of sub ×
+    # 2^j that holds them (small images pad little).
+    n_active = np.count_nonzero(
+        np.bincount(
+            screened.y.astype(np.int64) * w + screened.x, minlength=h * w
+        )  # fmt: skip
+    )
+    while chunk > sub and chunk // 2 >= n_active:
+        chunk //= 2
     batches, counts, _ = group_pixels(
         screened,
         t_start_us=t_start_us,
         chunk_pixels=chunk * n_dev,
-        min_chunk=sub * n_dev,
+        min_chunk=None,  # every chunk full: one compiled shape per bucket
+        merge_below=chunk * n_dev // 2,
     )
     lead = _reference_lead_us(reference_us, t_start_us, period, h, w)
     dtype = rig.fwhm_nm.dtype  # float32 or float64: the rig decides
     table = band_table(rig).channels(rig.grid.sub)
-    noise_j = None if noise is None else jnp.asarray(noise, dtype)
+    np_dtype = np.dtype(dtype)
+    noise_j = None if noise is None else jax.device_put(np.asarray(noise, np_dtype))
     thr_on = (
         np.full(h * w, float(rig.threshold_on))
         if threshold_on_map is None
@@ -493,14 +513,21 @@ def reconstruct(
         pix = np.where(valid, b.pixel, 0)
         # Carried references: shift each pixel's clock to start at its reference.
         d = np.where(valid, lead[pix], 0.0)
+        # Converted on the host and put on the device as they are: `jnp.asarray` of
+        # a NumPy array, or a dtype conversion there, is a compiled operation per
+        # shape (a cache read at every start of a process).
         px = PixelEvents(
-            jnp.asarray(np.where(b.mask, b.t_us + d[:, None], 0.0), dtype),
-            jnp.asarray(b.polarity, jnp.int32),
-            jnp.asarray(b.mask),
-            jnp.asarray(offsets_all[b.column], dtype),
-            jnp.asarray(thr_on[pix], dtype),
-            jnp.asarray(thr_off[pix], dtype),
-            jnp.asarray(-d, dtype),
+            *jax.device_put(
+                (
+                    np.where(b.mask, b.t_us + d[:, None], 0.0).astype(np_dtype),
+                    b.polarity.astype(np.int32),
+                    b.mask,
+                    offsets_all[b.column].astype(np_dtype),
+                    thr_on[pix].astype(np_dtype),
+                    thr_off[pix].astype(np_dtype),
+                    (-d).astype(np_dtype),
+                )
+            )
         )
         x, kkt = solve(rig, table, cfg, spec, sub, px, sweeps, noise_j)
         x, kkt = np.asarray(x), np.asarray(kkt)
@@ -576,9 +603,8 @@ def screen_events(
     hot = np.zeros(h * w, bool) if hot_map is None else hot_map.reshape(-1).copy()
     if len(events) == 0:
         return events, hot.reshape(h, w), 0
-    period = float(rig.period_us)
-    offs = np.asarray(rig.column_offsets(w), np.float64)
-    t_arrive, t_leave = (np.asarray(v, np.float64) for v in lit_interval_us(rig, offs))
+    geo = {k: np.asarray(v, np.float64) for k, v in _rig_geometry(rig, w).items()}
+    period, t_arrive, t_leave = float(geo["period_us"]), geo["arrive"], geo["leave"]
     sig_t = 0.0 if noise is None else float(noise[1])
     d_base = 0.0 if noise is None else float(noise[2]) / float(rig.baseline_rel + 1e-3)
     margin = 200.0 + 5.0 * sig_t + min(3.0 * d_base, 5000.0)

@@ -113,6 +113,7 @@ def group_pixels(
     chunk_pixels: int = 1024,
     min_chunk: int | None = None,
     max_events: int | None = None,
+    merge_below: int = 0,
 ):
     """Cut an event stream into per-pixel padded batches.
 
@@ -127,6 +128,9 @@ def group_pixels(
       power of two (≤ `chunk_pixels`), not to a full chunk, so small buckets cost little;
       default `chunk_pixels` (every batch the same size).
     - `max_events`: keep at most this many events per pixel (the earliest).
+    - `merge_below`: a bucket with fewer pixels than this joins the next larger one
+      (padded to its length) instead of making batches of its own shape: one compiled
+      shape less (a trace of ~0.8 s and a compilation) for a little padding.
 
     With numba (the default where it imports; `EVHSI_NO_NUMBA=1` turns it off) the
     sort by pixel is a counting sort and the slots are filled in one pass
@@ -167,9 +171,15 @@ def group_pixels(
         )  # fmt: skip
     sizes = bucket_sizes(int(use[active].max()))
     lower = 0
-    for k in sizes:
+    carried = active[:0]
+    for i, k in enumerate(sizes):
         members = active[(use[active] > lower) & (use[active] <= k)]
+        members = np.sort(np.concatenate([carried, members]))
         lower = k
+        if i + 1 < len(sizes) and 0 < members.size < merge_below:
+            carried = members  # too few for a batch of their own: pad them to 2k
+            continue
+        carried = active[:0]
         for c0 in range(0, members.size, chunk_pixels):
             sel = members[c0 : c0 + chunk_pixels]
             size = chunk_pixels
