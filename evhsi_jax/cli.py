@@ -361,7 +361,9 @@ def _run_sweeps(args, cal, out, roi, stop):
         solver=args.solver,
         max_sweeps=args.max_sweeps,
         low_event_rel=args.low_events,
-        mesh=_mesh(args.devices),
+        # Per sweep, one device unless asked: each sweep is small and latency counts
+        # (a sharded kernel per bucket is more to compile and dispatch).
+        mesh=None if args.devices is None else _mesh(args.devices),
         overwrite=args.restart,
         progress=not args.quiet,
         strict=args.strict,
@@ -821,7 +823,8 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="N",
         help="shard pixels over N devices (0: all, every host's; on a CPU, N > 1 "
         "splits it into N XLA host devices: --devices 2 uses both cores of a "
-        "2-core machine); default: every core of a CPU (at most 8), one GPU",
+        "2-core machine); default: every core of a CPU (at most 8) for a whole "
+        "recording, one device with --per-sweep",
     )
     p.add_argument(
         "--solver",

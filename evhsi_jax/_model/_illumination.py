@@ -107,31 +107,12 @@ def band_table(rig: Rig, *, fwhm_bound_nm: float | None = None) -> BandTable:
       traced (inside `jit`/`grad`) since the table's size must be static.
 
     **Returns:** a :class:`BandTable` with `values` of shape `(n, M*sub)`.
-
-    A concrete rig's table is built by one compiled function (keyed by the table's
-    static range) instead of ~40 single operations run one by one: each of those is a
-    compilation (or a cache read) of its own, which cost ~1.5 s at the start of every
-    `evhsi reconstruct`.
     """
-    if fwhm_bound_nm is None:
-        try:
-            bound = max(float(rig.fwhm_nm), TRACED_FWHM_BOUND_NM)
-        except jax.errors.ConcretizationTypeError:  # traced: build it inline
-            return _band_table(rig, None)
-        if not isinstance(rig.fwhm_nm, jax.core.Tracer):
-            return _band_table_jit(rig, bound)
-    return _band_table(rig, fwhm_bound_nm)
-
-
-def _band_table(rig: Rig, fwhm_bound_nm: float | None) -> BandTable:
     overlap = band_overlap(rig, fwhm_bound_nm=fwhm_bound_nm)
     weight = rig.camera_response * rig.lamp
     raw = overlap.values * weight[None, :]
     gain = 1.0 / jnp.max(jnp.sum(raw, axis=1))
     return BandTable(raw * gain, overlap.lo_nm, overlap.step_nm)
-
-
-_band_table_jit = jax.jit(_band_table, static_argnums=1)
 
 
 def band_overlap(rig: Rig, *, fwhm_bound_nm: float | None = None) -> BandTable:
