@@ -36,24 +36,12 @@ import jax
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
+from _common import matmul_gflops
 
 import evhsi_jax as ev
 from evhsi_jax._model import band_table
 from evhsi_jax._reconstruct import _pipeline as pipe
 from evhsi_jax._reconstruct._pixels import PixelEvents, group_pixels
-
-
-def matmul_gflops(repeats: int = 5) -> float:
-    n = 1024 if jax.default_backend() == "cpu" else 8192
-    a = jr.normal(jr.key(0), (n, n), jnp.float32)
-    f = jax.jit(lambda a: a @ a)
-    f(a).block_until_ready()
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        f(a).block_until_ready()
-        times.append(time.perf_counter() - t)
-    return 2 * n**3 / statistics.median(times) / 1e9
 
 
 def timed(fn, repeats):
@@ -147,7 +135,10 @@ def main():
         "jax": jax.__version__,
         "host": platform.processor() or platform.machine(),
         "batch_sizes": list(pipe.batch_sizes(None, None)),
-        "matmul_gflops_f32": [matmul_gflops()],
+        # default precision (TF32 on a recent GPU)
+        "matmul_gflops_f32": [
+            matmul_gflops(1024 if jax.default_backend() == "cpu" else 8192)
+        ],
     }
     print(report, flush=True)
     rig = ev.Rig()

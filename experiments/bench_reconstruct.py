@@ -23,20 +23,6 @@ import statistics
 import time
 
 
-def matmul_gflops(n: int = 1024, repeats: int = 5) -> float:
-    """This machine's float32 matmul rate now (NumPy, 1024²), so runs compare."""
-    import numpy as np
-
-    a = np.random.default_rng(0).standard_normal((n, n)).astype(np.float32)
-    a @ a
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        a @ a
-        times.append(time.perf_counter() - t)
-    return 2 * n**3 / statistics.median(times) / 1e9
-
-
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--size", default="96x144")
@@ -50,6 +36,7 @@ def main():
             + f" --xla_force_host_platform_device_count={args.devices}"
         )
     import jax.random as jr
+    from _common import matmul_gflops  # after the device count is set
 
     import evhsi_jax as ev
 
