@@ -1,4 +1,5 @@
-"""numba kernels of :func:`._pixels.group_pixels` (imported on first use).
+"""numba kernels of the host bookkeeping: :func:`._pixels.group_pixels` and the
+screening of :func:`._pipeline.screen_events` (imported on first use).
 
 Both replace NumPy steps whose cost grows faster than the event count or that make
 several passes: a stable sort of the events by pixel (a counting sort: one pass to count,
@@ -51,3 +52,31 @@ def fill_slots(sel, starts, use, t_sorted, s_sorted, tt, pp, mask):
             tt[r, j] = t_sorted[s + j]
             pp[r, j] = s_sorted[s + j]
             mask[r, j] = True
+
+
+@njit
+@no_type_check
+def lit_mask(x, y, t_us, t_start_us, period, lo_col, hi_col, width, n_pix):
+    """Per event, whether its time modulo the period falls in its column's interval
+    `[lo_col, hi_col]` (which may wrap around the period), and per pixel the number of
+    events that do not: the screening of :func:`._pipeline.screen_events` in one
+    pass (NumPy's floating remainder, to the bit: fmod, then the divisor's sign)."""
+    inside = np.empty(x.size, np.bool_)
+    outside = np.zeros(n_pix, np.int64)
+    for i in range(x.size):
+        c = np.int64(x[i])
+        r = np.float64(t_us[i]) - np.float64(t_start_us)
+        local = np.fmod(r, period)
+        if local != 0.0 and (local < 0.0) != (period < 0.0):
+            local += period
+        lo = lo_col[c]
+        hi = hi_col[c]
+        ok = (
+            (local >= lo and local <= hi)
+            or (local + period >= lo and local + period <= hi)
+            or (local - period >= lo and local - period <= hi)
+        )
+        inside[i] = ok
+        if not ok:
+            outside[np.int64(y[i]) * width + c] += 1
+    return inside, outside

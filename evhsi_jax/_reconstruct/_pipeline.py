@@ -20,7 +20,7 @@ from jax.sharding import Mesh
 from jax.sharding import PartitionSpec as P
 from tqdm.auto import tqdm
 
-from .._base import check_fits, shard
+from .._base import check_fits, shard, use_numba
 from .._model import Calibration, EventStream, Rig, band_table
 from . import _solvers
 from ._deblur import deblur_cube
@@ -625,16 +625,24 @@ def screen_events(
     if margin_us is not None:
         margin = max(margin, float(margin_us))
     x = events.x.astype(np.int64)
-    local = np.mod(events.t_us.astype(np.float64) - t_start_us, period)
-    lo, hi = t_arrive[x] - margin, t_leave[x] + margin
-    # The interval may wrap around the period (local times are taken modulo P).
-    inside = (
-        ((local >= lo) & (local <= hi))
-        | ((local + period >= lo) & (local + period <= hi))
-        | ((local - period >= lo) & (local - period <= hi))
-    )  # noqa: E501
     pix = events.y.astype(np.int64) * w + x
-    outside = np.bincount(pix[~inside], minlength=h * w)
+    if use_numba():  # one pass (the NumPy code below is the reference)
+        from ._group_jit import lit_mask
+
+        inside, outside = lit_mask(
+            events.x, events.y, events.t_us, np.int64(t_start_us), period,
+            t_arrive - margin, t_leave + margin, w, h * w,
+        )  # fmt: skip
+    else:
+        local = np.mod(events.t_us.astype(np.float64) - t_start_us, period)
+        lo, hi = t_arrive[x] - margin, t_leave[x] + margin
+        # The interval may wrap around the period (local times are taken modulo P).
+        inside = (
+            ((local >= lo) & (local <= hi))
+            | ((local + period >= lo) & (local + period <= hi))
+            | ((local - period >= lo) & (local - period <= hi))
+        )
+        outside = np.bincount(pix[~inside], minlength=h * w)
     hot |= (outside >= 2) & (outside >= 2 * sweeps)
     keep = inside & ~hot[pix]
     dropped = int(keep.size - keep.sum())

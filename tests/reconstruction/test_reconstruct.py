@@ -180,6 +180,29 @@ def test_grouping_kernels_match_the_numpy_reference(capture, max_events):
             np.testing.assert_array_equal(x, y, err_msg=f)
 
 
+def test_screening_kernel_matches_the_numpy_reference():
+    # Background events, hot pixels and jitter, recording started mid-period: the
+    # numba screening must keep and flag exactly what the NumPy code does.
+    from evhsi_jax._base._numba import numba_available, use_backend
+    from evhsi_jax._reconstruct._pipeline import noise_model, screen_events
+
+    if not numba_available():
+        pytest.skip("numba is not importable here")
+    rig = ev.Rig(noise_rate_hz=40.0, hot_pixel_fraction=0.05, timestamp_jitter_us=5.0)
+    events = ev.simulate(ev.load_scene("colorchecker", SIZE), rig, sweeps=2,
+                         key=jr.key(4))  # fmt: skip
+    for start in (0, 1234):
+        args = (events.time_window(start, 10**9), rig, start, noise_model(rig), 2)
+        with use_backend("numpy"):
+            ref = screen_events(*args)
+        with use_backend("numba"):
+            got = screen_events(*args)
+        assert got[2] == ref[2] > 0  # the same number dropped
+        np.testing.assert_array_equal(got[1], ref[1])
+        for f in ("x", "y", "p", "t_us"):
+            np.testing.assert_array_equal(getattr(got[0], f), getattr(ref[0], f))
+
+
 def test_batch_sizes_follow_the_device_kind():
     from evhsi_jax._reconstruct._pipeline import (
         ACCELERATOR_BATCH,
