@@ -7,6 +7,7 @@ from ._reconstruct import SOLVERS as SOLVERS
 from ._reconstruct import ProblemConfig as ProblemConfig
 from ._reconstruct import ReconstructionInfo as ReconstructionInfo
 from ._reconstruct import SolverSpec as SolverSpec
+from ._reconstruct import batch_sizes as batch_sizes
 from ._reconstruct import deblur_cube as deblur_cube
 from ._reconstruct import kkt_residual as kkt_residual
 from ._reconstruct import pixel_system as pixel_system
@@ -26,4 +27,5 @@ __all__ = [
     "kkt_residual",
     "deblur_cube",
     "DEFAULT_WIENER_REG",
+    "batch_sizes",
 ]

@@ -67,8 +67,9 @@ def device_parts(events, rig, maps, repeats):
     def host():
         screened, _, _ = pipe.screen_events(events, rig, 0, noise, 1, None)
         return group_pixels(  # as `reconstruct` cuts them
-            screened, t_start_us=0, chunk_pixels=chunk, merge_below=chunk // 2
-        )
+            screened, t_start_us=0, chunk_pixels=chunk, min_chunk=sub,
+            merge_below=chunk // 4,
+        )  # fmt: skip
 
     (batches, _, _), _, host_t = timed(host, repeats)
     dtype = rig.fwhm_nm.dtype

@@ -76,14 +76,15 @@ def main():
                         screened,
                         t_start_us=0,
                         chunk_pixels=chunk,
-                        merge_below=chunk // 2,
+                        min_chunk=sub, merge_below=chunk // 4,
                     )[0]
                 ),  # fmt: skip
                 args.repeats,
             )
         out[f"host_{backend}_s"] = {"screen": screen, "group": group}
     batches, _, _ = group_pixels(
-        screened, t_start_us=0, chunk_pixels=chunk, merge_below=chunk // 2
+        screened, t_start_us=0, chunk_pixels=chunk, min_chunk=sub,
+        merge_below=chunk // 4,
     )
     table = pipe.channel_table(rig)
     cfg = ProblemConfig()

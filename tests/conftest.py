@@ -19,9 +19,17 @@ jax.config.update("jax_numpy_dtype_promotion", "strict")
 
 from evhsi_jax._base._cache import cache_dir, enable_compilation_cache  # noqa: E402
 
-# Start JAX's backend now, with the environment's device count: `evhsi reconstruct`
-# run in-process asks for one XLA host device per core (its default `--devices`),
-# which must not depend on which test happens to start JAX first.
+# One XLA host device for this process and every `evhsi` subprocess a test starts:
+# `evhsi reconstruct` would otherwise ask for one per core (its default `--devices`)
+# and compile the sharded kernels once more in every subprocess (~10 % of the CLI
+# tests' time with an empty cache). A device count already in XLA_FLAGS wins there, as
+# here; the sharded path has its own tests (reconstruction/test_shard.py, 4 devices in
+# a subprocess) and the contract checks run the CLI with its defaults. JAX's backend
+# starts now, so nothing depends on which test starts it first.
+if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = (
+        os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=1"
+    ).strip()
 jax.devices()
 
 if cache_dir() is not None:

@@ -7,6 +7,7 @@ from ._implicit import reconstruct_pixels as reconstruct_pixels
 from ._pipeline import SOLVERS as SOLVERS
 from ._pipeline import ReconstructionInfo as ReconstructionInfo
 from ._pipeline import SolverSpec as SolverSpec
+from ._pipeline import batch_sizes as batch_sizes
 from ._pipeline import noise_model as noise_model
 from ._pipeline import reconstruct as reconstruct
 from ._pipeline import screen_events as screen_events

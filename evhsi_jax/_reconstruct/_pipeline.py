@@ -480,23 +480,15 @@ def reconstruct(
     screened, hot, n_dropped = screen_events(
         events, rig, t_start_us, noise, sweeps, cal.hot_pixels
     )
-    # Every chunk is full, so each bucket of slots has one compiled shape (a partial
-    # last chunk would be one more trace and compilation per bucket and image size);
-    # an image with fewer active pixels than a chunk gets the smallest chunk of sub ×
-    # 2^j that holds them (small images pad little).
-    n_active = np.count_nonzero(
-        np.bincount(
-            screened.y.astype(np.int64) * w + screened.x, minlength=h * w
-        )  # fmt: skip
-    )
-    while chunk > sub and chunk // 2 >= n_active:
-        chunk //= 2
+    # A bucket's last chunk is padded to sub × 2^j (small images and buckets pad
+    # little); a bucket of fewer than a quarter chunk of pixels joins the next one
+    # (one compiled shape less for a little padding).
     batches, counts, _ = group_pixels(
         screened,
         t_start_us=t_start_us,
         chunk_pixels=chunk * n_dev,
-        min_chunk=None,  # every chunk full: one compiled shape per bucket
-        merge_below=chunk * n_dev // 2,
+        min_chunk=sub * n_dev,
+        merge_below=chunk * n_dev // 4,
     )
     lead = _reference_lead_us(reference_us, t_start_us, period, h, w)
     dtype = rig.fwhm_nm.dtype  # float32 or float64: the rig decides

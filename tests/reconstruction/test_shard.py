@@ -57,9 +57,11 @@ FOUR_DEVICES = textwrap.dedent(
 @pytest.mark.slow  # ~1 min; the two-process run of test_reliability covers several devices
 def test_four_cpu_devices_equal_one():
     env = dict(os.environ)
-    env["XLA_FLAGS"] = (
-        env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4"
-    ).strip()
+    flags = [
+        f for f in env.get("XLA_FLAGS", "").split()
+        if "xla_force_host_platform_device_count" not in f  # conftest's 1 goes
+    ]  # fmt: skip
+    env["XLA_FLAGS"] = " ".join([*flags, "--xla_force_host_platform_device_count=4"])
     env["JAX_PLATFORMS"] = "cpu"
     proc = subprocess.run(
         [sys.executable, "-c", FOUR_DEVICES],
