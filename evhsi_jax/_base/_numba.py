@@ -1,13 +1,14 @@
 """Choosing between the compiled (numba) kernels and the vectorised NumPy reference.
 
 Host-side hot loops — EVT 3.0 and EVT 2.0 decoding and EVT 3.0 encoding (`_io`), the
-simulator's time sort (`_sorting`) and the reconstruction's grouping of events by pixel
-(`_reconstruct/_group_jit`) — exist twice. The event-file ones as vectorised NumPy
-(`_evt3_decode`, `_evt2`, `_evt3_encode`; the reference, documented there) and as numba
-kernels (`_decode_jit`, `_encode_jit`) that make one sequential pass carrying the same
-state word by word. Both give bit-identical events,
-words and `DecodeReport` counters, and raise the same `DecodeError` in strict mode (the
-tests run every case through both). The kernels are the default when numba imports;
+counting sort of integer keys (`_sorting`: the simulator's events by time, the
+reconstruction's by pixel) and the reconstruction's screening and slot filling
+(`_reconstruct/_group_jit`) — exist twice: as vectorised NumPy (the reference) and as
+numba kernels that make one sequential pass. The event-file kernels (`_decode_jit`,
+`_encode_jit`, references `_evt3_decode`, `_evt2`, `_evt3_encode`) carry the same state
+word by word and give bit-identical events, words and `DecodeReport` counters, and
+raise the same `DecodeError` in strict mode; the tests run every case through both
+paths. The kernels are the default when numba imports;
 `EVHSI_NO_NUMBA=1` (or `use_backend("numpy")`) selects the NumPy path.
 
 numba is imported lazily, on the first use of a kernel, so `import evhsi_jax` does not
@@ -46,7 +47,8 @@ def numba_available() -> bool:
 
 
 def use_numba() -> bool:
-    """Whether decoders and encoders use the compiled kernels now."""
+    """Whether the host-side kernels (decoding, encoding, sorting, grouping) use
+    their compiled versions now."""
     if _forced is not None:
         return _forced == "numba"
     flag = os.environ.get(ENV_DISABLE, "").strip().lower()

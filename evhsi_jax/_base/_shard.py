@@ -57,6 +57,7 @@ __all__ = [
     "to_host",
     "replicated",
     "mesh_size",
+    "device_platform",
     "sub_batch_for",
     "chunk_groups",
 ]
@@ -220,6 +221,14 @@ def replicated(mesh, tree):
     return jax.tree.map(
         lambda a: to_global(mesh, a, sharded=False) if eqx.is_array(a) else a, tree
     )
+
+
+def device_platform(mesh: Mesh | None = None) -> str:
+    """The platform (`"cpu"`, `"gpu"`, …) of the devices a computation runs on: the
+    mesh's, else JAX's default backend (batch sizes are chosen by it)."""
+    if mesh is None:
+        return jax.default_backend()
+    return next(iter(mesh.devices.flat)).platform
 
 
 def sub_batch_for(mesh: Mesh, sub: int) -> int:

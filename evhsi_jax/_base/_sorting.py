@@ -1,11 +1,11 @@
 """A stable argsort of integer keys in O(n) where the keys span a small range.
 
 The simulator orders tens of millions of events by timestamp (µs within a few sweeps:
-a range of ~33 000 per sweep), and NumPy's stable sort of int64 is a merge sort
-(25 M events: ~3 s). A counting sort over the key range gives the same permutation in
-two passes. It runs as a numba kernel (`_sorting_jit`) where numba imports and the
-range is at most `4 n + 65536`; otherwise, and with `EVHSI_NO_NUMBA=1`, NumPy's stable
-argsort (the reference) is used.
+a range of ~33 000 per sweep) and the reconstruction orders them by pixel (a range of
+H × W); NumPy's stable sort of int64 is a merge sort (25 M events: ~3 s). A counting
+sort over the key range gives the same permutation in two passes. It runs as a numba
+kernel (`_sorting_jit`) where numba imports and the range is at most `4 n + 65536`;
+otherwise, and with `EVHSI_NO_NUMBA=1`, NumPy's stable argsort (the reference) is used.
 """
 
 from __future__ import annotations

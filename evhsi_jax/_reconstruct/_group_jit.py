@@ -1,13 +1,13 @@
 """numba kernels of the host bookkeeping: :func:`._pixels.group_pixels` and the
 screening of :func:`._pipeline.screen_events` (imported on first use).
 
-Both replace NumPy steps whose cost grows faster than the event count or that make
-several passes: a stable sort of the events by pixel (a counting sort: one pass to count,
-one to place, O(n) against NumPy's O(n log n) merge sort — 1.2 s of 2 for 6.4 M events)
-and the filling of a bucket's padded slots (one pass over its pixels' events instead of
-a gather through an `(n, k)` index array). The NumPy code in `_pixels` is the reference;
-the tests run both. Kernels are marked `no_type_check` so that the jaxtyping import
-hook of the test suite leaves them to numba.
+Each replaces NumPy code that makes several passes over the events: the filling of a
+bucket's padded slots (one pass over its pixels' events instead of a gather through an
+`(n, k)` index array) and the screening (one pass instead of a remainder, six
+comparisons and a bincount). The sort by pixel is the shared counting sort
+(`evhsi_jax._base.stable_argsort_int`). The NumPy code in `_pixels` and `_pipeline` is
+the reference; the tests run both. Kernels are marked `no_type_check` so that the
+jaxtyping import hook of the test suite leaves them to numba.
 """
 
 from __future__ import annotations
@@ -17,27 +17,6 @@ from typing import no_type_check
 import numpy as np
 
 from .._base import njit
-
-
-@njit
-@no_type_check
-def sort_by_pixel(pix, n_pix, t_us, t_start_us, centre, sgn):
-    """The events' relative times (+ `centre`) and signs sorted by pixel, time order
-    kept within a pixel: a counting sort that writes each event once to its place."""
-    start = np.zeros(n_pix + 1, np.int64)
-    for i in range(pix.size):
-        start[pix[i] + 1] += 1
-    for p in range(n_pix):
-        start[p + 1] += start[p]
-    t_sorted = np.empty(pix.size, np.float64)
-    s_sorted = np.empty(pix.size, np.int8)
-    for i in range(pix.size):
-        p = pix[i]
-        j = start[p]
-        t_sorted[j] = np.float64(t_us[i] - t_start_us) + centre
-        s_sorted[j] = sgn[i]
-        start[p] = j + 1
-    return t_sorted, s_sorted
 
 
 @njit

@@ -163,11 +163,8 @@ def batch_sizes(
 ) -> tuple[int, int]:
     """`(chunk_pixels, sub_batch)` with `None` replaced by the default of the devices
     that will run the solve (the mesh's, else JAX's default backend)."""
-    if mesh is not None:
-        platform = next(iter(mesh.devices.flat)).platform
-    else:
-        platform = jax.default_backend()
-    chunk, sub = CPU_BATCH if platform == "cpu" else ACCELERATOR_BATCH
+    on_cpu = shard.device_platform(mesh) == "cpu"
+    chunk, sub = CPU_BATCH if on_cpu else ACCELERATOR_BATCH
     chunk = chunk if chunk_pixels is None else int(chunk_pixels)
     sub = min(sub, chunk) if sub_batch is None else int(sub_batch)
     if chunk < 1 or sub < 1:
@@ -616,8 +613,7 @@ def screen_events(
     margin = 200.0 + 5.0 * sig_t + min(3.0 * d_base, 5000.0)
     if margin_us is not None:
         margin = max(margin, float(margin_us))
-    x = events.x.astype(np.int64)
-    pix = events.y.astype(np.int64) * w + x
+    pix = events.y.astype(np.int64) * w + events.x
     if use_numba():  # one pass (the NumPy code below is the reference)
         from ._group_jit import lit_mask
 
@@ -626,6 +622,7 @@ def screen_events(
             t_arrive - margin, t_leave + margin, w, h * w,
         )  # fmt: skip
     else:
+        x = events.x.astype(np.int64)
         local = np.mod(events.t_us.astype(np.float64) - t_start_us, period)
         lo, hi = t_arrive[x] - margin, t_leave[x] + margin
         # The interval may wrap around the period (local times are taken modulo P).

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from .._base import use_numba
+from .._base import stable_argsort_int, use_numba
 from .._model import EventStream
 
 __all__ = ["PixelBatch", "PixelEvents", "group_pixels", "bucket_sizes"]
@@ -133,8 +133,9 @@ def group_pixels(
       shape less (a trace of ~0.8 s and a compilation) for a little padding.
 
     With numba (the default where it imports; `EVHSI_NO_NUMBA=1` turns it off) the
-    sort by pixel is a counting sort and the slots are filled in one pass
-    (`_group_jit`); the NumPy path is the reference and gives the same batches.
+    sort by pixel is a counting sort (:func:`evhsi_jax._base.stable_argsort_int`) and
+    the slots are filled in one pass (`_group_jit`); the NumPy path is the reference
+    and gives the same batches.
 
     **Returns:** `(batches, counts, t0)` — a list of :class:`PixelBatch`, the event count
     of every pixel `(H*W,)`, and the start time used.
@@ -158,17 +159,10 @@ def group_pixels(
     active = np.nonzero(use > 0)[0]
     if active.size == 0:
         return batches, counts, t_start_us
-    if jit is None:
-        order = np.argsort(pix, kind="stable")  # stable: time order kept per pixel
-        t_rel = (events.t_us[order] - t_start_us).astype(np.float64)
-        t_rel += TIMESTAMP_CENTRE_US
-        sgn = events.polarity_sign[order]
-    else:
-        t_rel, sgn = jit.sort_by_pixel(
-            pix, w * h, np.ascontiguousarray(events.t_us, np.int64),
-            np.int64(t_start_us), TIMESTAMP_CENTRE_US,
-            np.ascontiguousarray(events.polarity_sign, np.int8),
-        )  # fmt: skip
+    # Stable (time order kept within a pixel): a counting sort by pixel with numba.
+    order = stable_argsort_int(pix)
+    t_rel = (events.t_us[order] - t_start_us).astype(np.float64) + TIMESTAMP_CENTRE_US
+    sgn = events.polarity_sign[order]
     sizes = bucket_sizes(int(use[active].max()))
     lower = 0
     carried = active[:0]

@@ -295,10 +295,9 @@ def simulate(
     h, w = scenes[0].height, scenes[0].width
     if any((s.height, s.width) != (h, w) for s in scenes):
         raise ValueError("all per-sweep scenes must have the same size")
-    devices = None if mesh is None else list(mesh.devices.flat)
-    platform = jax.default_backend() if mesh is None else devices[0].platform
+    on_host = shard.device_platform(mesh) == "cpu"
     if chunk_columns is None:
-        chunk_columns = CHUNK_COLUMNS["cpu" if platform == "cpu" else "accelerator"]
+        chunk_columns = CHUNK_COLUMNS["cpu" if on_host else "accelerator"]
     chunk_columns = max(1, min(int(chunk_columns), w))
     offsets = np.asarray(rig.column_offsets(w), np.float64)
     _check_sweep_fits(rig, offsets)
@@ -357,7 +356,6 @@ def simulate(
         desc=f"simulate {h}x{w}x{sweeps}",
     )
     groups = shard.chunk_groups(n_chunks, mesh)  # one chunk each without a mesh
-    on_host = platform == "cpu"
     group_states = [None] * len(groups)
     lowpass_hz = (
         jnp.asarray(fx.photoreceptor_hz, dtype) if fx.photoreceptor_hz > 0 else None
