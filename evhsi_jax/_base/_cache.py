@@ -9,16 +9,31 @@ the library changes no global JAX setting).
 Where: `$EVHSI_CACHE_DIR` if set (`off` turns the cache off), else
 `$XDG_CACHE_HOME/evhsi_jax/jax` (default `~/.cache/evhsi_jax/jax`). The folder is safe
 to delete at any time; JAX fills it again as needed.
+
+JAX's cache skips XLA's compilation only: tracing a kernel in Python and lowering it
+still happen in every process (~0.4 s for each of the reconstruction's chunk shapes).
+:func:`call_exported` therefore also keeps the *traced* program of a hot kernel, as a
+serialized `jax.export` module in the folder's `exported/` subfolder, keyed by
+everything the trace depends on (the argument structure, shapes, dtypes and
+shardings, the static arguments, the devices, the JAX version and the package's own
+source), so a second process calls it without tracing. Same folder, same rules: on
+only while the compilation cache is on, safe to delete, and never a reason to fail
+(any problem falls back to calling the kernel directly).
 """
 
 from __future__ import annotations
 
+import hashlib
 import os
 from pathlib import Path
 
+import equinox as eqx
 import jax
+import jax.tree_util as jtu
 
-__all__ = ["enable_compilation_cache", "cache_dir"]
+from ._storage import atomic_write
+
+__all__ = ["enable_compilation_cache", "cache_dir", "call_exported"]
 
 _ENABLED: list[Path] = []
 
@@ -52,3 +67,123 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path | No
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     _ENABLED[:] = [folder]
     return folder
+
+
+# --- traced programs kept on disk (jax.export) ----------------------------------------
+_EXPORTED: dict[str, object] = {}  # key -> jax.export.Exported, this process
+_SOURCE_DIGEST: list[str] = []
+
+
+def _source_digest() -> str:
+    """A digest of the package's Python source: an exported program is a trace of
+    this code, so any change of it must miss the cache."""
+    if not _SOURCE_DIGEST:
+        h = hashlib.sha256()
+        root = Path(__file__).resolve().parents[1]
+        for f in sorted(root.rglob("*.py")):
+            h.update(str(f.relative_to(root)).encode())
+            h.update(f.read_bytes())
+        _SOURCE_DIGEST.append(h.hexdigest())
+    return _SOURCE_DIGEST[0]
+
+
+def _serialization_available() -> bool:
+    try:
+        import flatbuffers  # noqa: F401  (jax.export's serializer needs it)
+    except ImportError:
+        return False
+    return True
+
+
+def call_exported(name: str, fn, args: tuple, *, static: tuple = (), mesh=None):
+    """`fn(*args)`, through a traced copy of `fn` kept on disk when the compilation
+    cache is on (see the module docstring); plain `fn(*args)` otherwise.
+
+    **Arguments:**
+
+    - `name`: the kernel's name (part of the key and the file name).
+    - `fn`: a function JAX can trace (jitted or not); its result must be arrays.
+    - `args`: its arguments, pytrees; array leaves (JAX or NumPy) become the
+      program's inputs, every other leaf is part of the key (its `repr`), as with
+      `equinox.filter_jit`.
+    - `static`: whatever else `fn`'s program depends on that is not in `args` (the
+      values it closes over): part of the key.
+    - `mesh`: the device mesh `fn` runs on (a `shard_map` inside): leaves not already
+      spread over several devices are replicated on it. `None`: one device.
+
+    **Returns:** what `fn(*args)` returns (bit for bit: the same program).
+    """
+    folder = _ENABLED[0] / "exported" if _ENABLED else None
+    if folder is None or jax.process_count() > 1 or not _serialization_available():
+        return fn(*args)
+    # Flattened by hand: `eqx.partition` rebuilds each node around placeholder leaves,
+    # which a registered dataclass's type-checked __init__ may refuse.
+    every, treedef = jtu.tree_flatten(args)
+    is_input = [eqx.is_array(a) for a in every]
+    leaves = [a for a, d in zip(every, is_input) if d]
+    kept = [None if d else a for a, d in zip(every, is_input)]
+    if mesh is not None:
+        from jax.sharding import NamedSharding
+        from jax.sharding import PartitionSpec as P
+
+        rep = NamedSharding(mesh, P())
+        leaves = [
+            a
+            if isinstance(a, jax.Array) and len(a.sharding.device_set) > 1
+            else jax.device_put(a, rep)
+            for a in leaves
+        ]
+    specs = [
+        jax.ShapeDtypeStruct(
+            a.shape, a.dtype, sharding=a.sharding if mesh is not None else None
+        )
+        for a in leaves
+    ]
+    devices = repr(dict(mesh.shape)) if mesh is not None else 1
+    parts = (
+        name,
+        repr(static),
+        str(treedef),
+        repr(kept),
+        [
+            (s.shape, str(s.dtype), str(getattr(s.sharding, "spec", None)))
+            for s in specs
+        ],
+        devices,
+        jax.default_backend(),
+        jax.__version__,
+        bool(jax.config.jax_enable_x64),
+        _source_digest(),
+    )
+    key = f"{name}-{hashlib.sha256(repr(parts).encode()).hexdigest()[:32]}"
+    if key not in _EXPORTED:  # None: export failed, run `fn` itself in this process
+        path = folder / f"{key}.bin"
+        _EXPORTED[key] = _load_or_export(path, fn, treedef, kept, specs)
+    exp = _EXPORTED[key]
+    return fn(*args) if exp is None else exp.call(*leaves)
+
+
+def _load_or_export(path: Path, fn, treedef, kept, specs):
+    """The stored program at `path`, or a new export of `fn` written there; None when
+    neither works (the caller then runs `fn` itself)."""
+    try:
+        return jax.export.deserialize(bytearray(path.read_bytes()))
+    except Exception:  # missing, damaged or foreign: export (again, over it)
+        pass
+
+    def flat(*leaves):
+        it = iter(leaves)
+        every = [next(it) if a is None else a for a in kept]
+        return fn(*jtu.tree_unflatten(treedef, every))
+
+    try:
+        exp = jax.export.export(jax.jit(flat))(*specs)
+        data = exp.serialize()
+    except Exception:
+        return None
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write(path, lambda f: f.write(data))
+    except (OSError, ValueError):
+        pass  # a read-only cache folder: this process still uses the export
+    return exp

@@ -20,7 +20,7 @@ from jax.sharding import Mesh
 from jax.sharding import PartitionSpec as P
 from tqdm.auto import tqdm
 
-from .._base import check_fits, shard, use_numba
+from .._base import call_exported, check_fits, shard, use_numba
 from .._model import Calibration, EventStream, Rig, band_table
 from . import _solvers
 from ._deblur import deblur_cube
@@ -304,6 +304,13 @@ def _solve_chunk(
     return x.reshape(n, -1), kkt.reshape(n)
 
 
+def _solve_chunk_stored(rig, table, cfg, spec, sub, px, sweeps, noise=None):
+    """:func:`_solve_chunk` through the stored traced program of its shapes when the
+    compilation cache is on (`call_exported`: a second process skips tracing)."""
+    args = (rig, table, cfg, spec, sub, px, sweeps, noise)
+    return call_exported("reconstruct_chunk", _solve_chunk, args)
+
+
 @eqx.filter_jit
 def _solve_robust(
     rig,
@@ -469,7 +476,7 @@ def reconstruct(
         events = events.time_window(t_start_us, stop)
     chunk_pixels, sub_batch = batch_sizes(chunk_pixels, sub_batch, mesh)
     sub = max(1, min(sub_batch, chunk_pixels))
-    solve, n_dev = _solve_chunk, 1
+    solve, n_dev = _solve_chunk_stored, 1
     if mesh is not None:
         solve, n_dev = functools.partial(solve_chunk_sharded, mesh), mesh.devices.size
         sub = shard.sub_batch_for(mesh, sub)
@@ -719,10 +726,17 @@ def solve_chunk_sharded(
     rows = jax.tree.map(lambda a: shard.to_global(mesh, np.asarray(a)), px)
     fn = _solver_fn(mesh, cfg, spec, int(sub), int(sweeps), noise is not None)
     noise_arr = jnp.zeros(3, table.values.dtype) if noise is None else noise
-    x, kkt = fn(
+    args = (
         shard.replicated(mesh, rig),
         shard.replicated(mesh, table),
         shard.replicated(mesh, noise_arr),
         rows,
+    )
+    x, kkt = call_exported(
+        "reconstruct_chunk_sharded",
+        fn,
+        args,
+        static=(cfg, spec, int(sub), int(sweeps), noise is not None),
+        mesh=mesh,
     )
     return shard.to_host(x), shard.to_host(kkt)

@@ -1,0 +1,125 @@
+"""The start-up cache of traced kernels (`evhsi_jax._base._cache.call_exported`):
+same results as the kernel itself, no tracing in a process that finds the stored
+program, a key that separates what the trace depends on, and a fall-back for every
+failure."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import evhsi_jax as ev
+from evhsi_jax._base import _cache
+
+TRACES = []
+
+
+def kernel(x, table, scale, mode):
+    """A small kernel with an array pytree, a static Python leaf and a closure-free
+    body; counts its traces."""
+    TRACES.append(mode)
+    y = x @ table["a"] + table["b"]
+    return jnp.tanh(y) * scale if mode == "tanh" else y * scale
+
+
+@pytest.fixture
+def cache_on(tmp_path, monkeypatch):
+    """The cache switched on in a private folder, with an empty in-process memo (as a
+    new process would have)."""
+    monkeypatch.setattr(_cache, "_ENABLED", [tmp_path])
+    monkeypatch.setattr(_cache, "_EXPORTED", {})
+    TRACES.clear()
+    return tmp_path / "exported"
+
+
+def _args(n=4, mode="tanh"):
+    rng = np.random.default_rng(0)
+    x = rng.standard_normal((n, 3)).astype(np.float32)
+    table = {"a": jnp.asarray(rng.standard_normal((3, 2)), jnp.float32),
+             "b": np.float32(0.5)}  # fmt: skip
+    return (x, table, np.float32(2.0), mode)
+
+
+def test_stored_program_equals_kernel_and_skips_tracing(cache_on):
+    args = _args()
+    want = np.asarray(eqx.filter_jit(kernel)(*args))
+    TRACES.clear()
+    got = np.asarray(_cache.call_exported("k", kernel, args))
+    np.testing.assert_array_equal(got, want)
+    assert len(TRACES) == 1 and len(list(cache_on.glob("k-*.bin"))) == 1
+    # A new process: empty memo, the file is there -> no trace at all.
+    _cache._EXPORTED.clear()
+    TRACES.clear()
+    again = np.asarray(_cache.call_exported("k", kernel, _args()))
+    np.testing.assert_array_equal(again, want)
+    assert TRACES == []
+    # New values of the same shapes reuse the program (values are inputs, not keys).
+    other = (args[0] + 1.0, *args[1:])
+    np.testing.assert_array_equal(
+        np.asarray(_cache.call_exported("k", kernel, other)),
+        np.asarray(eqx.filter_jit(kernel)(*other)),
+    )
+    assert len(list(cache_on.glob("k-*.bin"))) == 1
+
+
+@pytest.mark.parametrize("change", ["shape", "static_leaf", "static_arg", "dtype"])
+def test_key_separates_what_the_trace_depends_on(cache_on, change):
+    _cache.call_exported("k", kernel, _args())
+    if change == "shape":
+        args, static = _args(n=5), ()
+    elif change == "static_leaf":  # a Python leaf of the arguments
+        args, static = _args(mode="linear"), ()
+    elif change == "static_arg":  # a value the function closes over
+        args, static = _args(), ("other",)
+    else:
+        args = jax.tree.map(
+            lambda a: a.astype(jnp.float16) if eqx.is_array(a) else a, _args()
+        )
+        static = ()
+    got = _cache.call_exported("k", kernel, args, static=static)
+    np.testing.assert_array_equal(
+        np.asarray(got), np.asarray(eqx.filter_jit(kernel)(*args))
+    )
+    assert len(list(cache_on.glob("k-*.bin"))) == 2
+
+
+def test_damaged_file_is_replaced(cache_on):
+    want = np.asarray(_cache.call_exported("k", kernel, _args()))
+    (path,) = cache_on.glob("k-*.bin")
+    path.write_bytes(b"not a program")
+    _cache._EXPORTED.clear()
+    np.testing.assert_array_equal(
+        np.asarray(_cache.call_exported("k", kernel, _args())), want
+    )
+    assert path.read_bytes() != b"not a program"
+
+
+def test_off_and_failures_fall_back(cache_on, monkeypatch):
+    def untraceable(x, table, scale, mode):  # data-dependent Python control flow
+        return x * 2 if float(np.asarray(x).sum()) > -1e9 else x
+
+    args = _args()
+    np.testing.assert_array_equal(
+        np.asarray(_cache.call_exported("u", untraceable, args)), args[0] * 2
+    )
+    assert list(cache_on.glob("u-*.bin")) == []
+    monkeypatch.setattr(_cache, "_ENABLED", [])  # cache off: plain call, no file
+    _cache.call_exported("off", kernel, args)
+    assert list(cache_on.glob("off-*.bin")) == []
+
+
+def test_reconstruction_through_stored_programs(cache_on, monkeypatch):
+    """`ev.reconstruct` with the cache on: the cube of a second process (empty memo,
+    stored programs) equals that of the kernels run directly, bit for bit."""
+    scene = ev.load_scene("colorchecker", (8, 12))
+    rig = ev.Rig()
+    events = ev.simulate(scene, rig, key=jax.random.key(3))
+    first = ev.reconstruct(events, rig)
+    assert list(cache_on.glob("reconstruct_chunk-*.bin"))
+    _cache._EXPORTED.clear()
+    second = ev.reconstruct(events, rig)
+    monkeypatch.setattr(_cache, "_ENABLED", [])
+    direct = ev.reconstruct(events, rig)
+    np.testing.assert_array_equal(first, direct)
+    np.testing.assert_array_equal(second, direct)
