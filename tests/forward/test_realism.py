@@ -26,11 +26,24 @@ def _digest(e):
     return hashlib.sha1(b"".join(cols)).hexdigest()
 
 
+#: Digests of the simulator before the effects existed (commit 1408b40), same call, as
+#: that commit computes them on each kind of machine the suite has run on: XLA's CPU
+#: kernels round float32 differently on different processors, which moves 2 of the
+#: ~21k events (checked by running 1408b40 itself on the AMD EPYC machine).
+PRE_EFFECTS_DIGESTS = {
+    (21170, "bf0cb575d673c9f3de8242fca51e187bf0e6e0af"),  # the first development VMs
+    (21168, "e2c34fa7095181429230a430af5c48c78cafe231"),  # AMD EPYC (AVX-512) VM
+}
+
+
 def test_effects_off_is_the_ideal_simulator_bit_for_bit():
-    # Digest of the simulator before the effects existed (commit 1408b40), same call.
-    e = ev.simulate(ev.load_scene("colorchecker", (H, W)), ev.Rig(), sweeps=2, key=jr.key(3))
-    assert len(e) == 21170
-    assert _digest(e) == "bf0cb575d673c9f3de8242fca51e187bf0e6e0af"
+    sc = ev.load_scene("colorchecker", (H, W))
+    e = ev.simulate(sc, ev.Rig(), sweeps=2, key=jr.key(3))
+    assert (len(e), _digest(e)) in PRE_EFFECTS_DIGESTS
+    # Every effect key given at its "off" value takes the same path, bit for bit.
+    off = {**ev.Rig().effects.as_dict(), "noise_rate_hz": 0.0, "sweep_curvature_nm": 0.0}
+    e_off = ev.simulate(sc, ev.Rig.from_dict(off), sweeps=2, key=jr.key(3))
+    assert _digest(e_off) == _digest(e)
 
 
 @pytest.fixture(scope="module")
