@@ -39,6 +39,15 @@ def machine() -> str:
     )
 
 
+def white_response(rig, centres_nm):
+    """A(λc): a white pixel's band light with the band centred at λc (peak 1 over λc).
+    Where it is below the constant light c a feature makes no events on its own: the
+    rainbow and realism studies split their metrics by A(λc) ≥ c."""
+    tab = ev.forward.band_table(rig)
+    lam = np.asarray(centres_nm, np.float32)
+    return np.asarray(ev.forward.lookup(tab, lam)).sum(axis=1)
+
+
 def capture(scene_name, size, *, rig=None, sweeps=1, seed=0):
     """Simulate a built-in scene; returns (rig, scene, events, sim_info, truth)."""
     rig = rig or ev.Rig()

@@ -21,10 +21,9 @@ Run: `.venv/bin/python experiments/rainbow.py` (about 2 min on 2 cores).
 """
 
 import numpy as np
-from _common import capture, pyplot, save, timed_reconstruct
+from _common import capture, pyplot, save, timed_reconstruct, white_response
 
 import evhsi_jax as ev
-from evhsi_jax._model._illumination import band_table, lookup
 
 SIZE = (48, 96)
 PARTS = ("peak", "step", "notch")
@@ -34,12 +33,6 @@ FLAT_LAMP = {"wavelengths_nm": [380.0, 780.0], "values": [1.0, 1.0]}
 def feature_centres(width):
     """The scene's feature centre per column (as in `ev.load_scene('rainbow')`)."""
     return 420.0 + 320.0 * (np.arange(width) / max(width - 1, 1))
-
-
-def white_response(rig, centres_nm):
-    """A(λc): a white pixel's band light at band centre λc (peak 1 over λc)."""
-    tab = band_table(rig)
-    return np.asarray(lookup(tab, np.asarray(centres_nm, np.float32))).sum(axis=1)
 
 
 def by_part(cube, truth, cols=None):

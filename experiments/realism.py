@@ -37,6 +37,7 @@ from pathlib import Path
 import jax
 import jax.random as jr
 import numpy as np
+from _common import white_response
 
 import evhsi_jax as ev
 
@@ -87,14 +88,13 @@ def user_init(sensor: dict, true: ev.Rig, band_known: bool = True) -> ev.Rig:
 
 
 def lit_channels(rig: ev.Rig) -> np.ndarray:
-    """Channels whose band light at a reflectance-1 pixel reaches the constant light c
-    at its peak (the rainbow study's rule A(λc) ≥ c, per channel). Beyond ~700 nm the
-    default lamp times D(λ) falls below c: a reflectance there changes the log level
-    by less than a third of a threshold, so with a noisy sensor those channels are
-    filled by the priors."""
-    table = ev.forward.band_table(rig).channels(rig.grid.sub)
-    light = np.asarray(table.values).max(axis=0)
-    return light >= float(rig.baseline_level)
+    """Channels the lamp lights: the band centred on the channel gives a white pixel
+    at least the constant light c (A(λc) ≥ c, the rainbow study's rule). Beyond it the
+    lamp times D(λ) falls below c: a reflectance there moves the log level by less than
+    a threshold on its own, so with a noisy sensor those channels are filled by the
+    priors."""
+    a = white_response(rig, np.asarray(rig.grid.centres_nm))
+    return a >= float(rig.baseline_rel)
 
 
 def split_psnr(cube, truth, lit) -> tuple[float, float]:

@@ -27,12 +27,13 @@ def _digest(e):
 
 
 #: Digests of the simulator before the effects existed (commit 1408b40), same call, as
-#: that commit computes them on each kind of machine the suite has run on: XLA's CPU
-#: kernels round float32 differently on different processors, which moves 2 of the
-#: ~21k events (checked by running 1408b40 itself on the AMD EPYC machine).
+#: that commit computes them on each kind of machine the suite has run on: float32
+#: rounding differs between these machines and moves 2 of the ~21k events (checked by
+#: running 1408b40 itself on the AMD EPYC machine; capping XLA's instruction set at
+#: AVX2 or switching off NumPy's AVX-512 paths did not change its result there).
 PRE_EFFECTS_DIGESTS = {
     (21170, "bf0cb575d673c9f3de8242fca51e187bf0e6e0af"),  # the first development VMs
-    (21168, "e2c34fa7095181429230a430af5c48c78cafe231"),  # AMD EPYC (AVX-512) VM
+    (21168, "e2c34fa7095181429230a430af5c48c78cafe231"),  # AMD EPYC VM (2026-11-25)
 }
 
 
