@@ -174,11 +174,14 @@ def spectral_traces(rig: Rig, spectra, overlap: BandTable | None = None) -> Band
     return BandTable(gain * (overlap.values @ weighted), overlap.lo_nm, overlap.step_nm)
 
 
-def chart_log_steps(rig: Rig, data, traces=None):
+def chart_log_steps(rig: Rig, data, traces=None, filtered=None):
     """Model log steps of every chart event, shape `(n, k)` (0 in padding).
 
     `data` is a :class:`ChartData`, or the tuple `(t, polarity, mask, column,
     spectrum)` of JAX arrays (then `traces` is required). Differentiable in the rig.
+    `filtered`: the traces through the rig's photoreceptor low-pass
+    (:func:`lowpassed_traces`), when the caller has them already (a fit over blocks of
+    pixels computes them once per evaluation, not once per block).
     """
     if isinstance(data, ChartData):
         traces = traces if traces is not None else spectral_traces(rig, data.spectra)
@@ -203,7 +206,7 @@ def chart_log_steps(rig: Rig, data, traces=None):
 
     hz = rig.effects.photoreceptor_hz
     if hz > 0:  # a known photoreceptor low-pass: the events see the filtered level
-        ftab = _lowpassed_traces(rig, traces, hz)
+        ftab = filtered if filtered is not None else lowpassed_traces(rig, traces)
 
         def level(tt):
             return lookup(
@@ -213,7 +216,7 @@ def chart_log_steps(rig: Rig, data, traces=None):
     return jnp.where(m, level(t) - level(t_ref), 0.0)
 
 
-def _lowpassed_traces(rig: Rig, traces: BandTable, cutoff_hz: float) -> BandTable:
+def lowpassed_traces(rig: Rig, traces: BandTable) -> BandTable:
     """The chart spectra's log-intensity traces through the photoreceptor low-pass
     (:func:`evhsi_jax.forward.photoreceptor_lowpass`), tabulated over λc like the
     traces: time and λc are proportional along the sweep (one table step is
@@ -224,13 +227,15 @@ def _lowpassed_traces(rig: Rig, traces: BandTable, cutoff_hz: float) -> BandTabl
     filt = photoreceptor_lowpass(
         jnp.log(inten + rig.log_eps),
         traces.step_nm / speed,
-        cutoff_hz,
+        rig.effects.photoreceptor_hz,
         rig.log_eps,
     )
     return BandTable(filt, traces.lo_nm, traces.step_nm)
 
 
-def chart_residuals(rig: Rig, data, traces=None, *, per_pixel: bool = False):
+def chart_residuals(
+    rig: Rig, data, traces=None, *, per_pixel: bool = False, filtered=None
+):
     """Event residuals in threshold units, shape `(n, k)` (0 in padding).
 
     $r_k = d_k / C - σ_k$ with $d_k$ the model log step (:func:`chart_log_steps`): 0
@@ -243,7 +248,7 @@ def chart_residuals(rig: Rig, data, traces=None, *, per_pixel: bool = False):
     $1/C_p = \\sum σ_k d_k / \\sum d_k^2$ over the pixel's events of one polarity
     (the least-squares value), so threshold mismatch cannot bias the other parameters.
     """
-    d = chart_log_steps(rig, data, traces)
+    d = chart_log_steps(rig, data, traces, filtered)
     pol = data.polarity if isinstance(data, ChartData) else data[1]
     mask = data.mask if isinstance(data, ChartData) else data[2]
     pol = jnp.asarray(pol).astype(d.dtype)

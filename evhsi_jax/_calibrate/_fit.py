@@ -47,6 +47,7 @@ from typing import Any
 
 import equinox as eqx
 import jax
+import jax.flatten_util
 import jax.numpy as jnp
 import lineax as lx
 import numpy as np
@@ -70,6 +71,7 @@ from ._chart import (
     _with_column_offsets,
     chart_data,
     chart_residuals,
+    lowpassed_traces,
     spectral_traces,
     threshold_maps_from_chart,
 )
@@ -107,27 +109,89 @@ def _response_basis(rig: Rig, degree: int) -> np.ndarray:
     )
 
 
+BLOCK_EVENTS = 1 << 13  # padded events per block of chart pixels in the fit's passes
+
+
 class _FitData(eqx.Module):
     """What the chart-fit residuals read besides the parameters (all arguments, no
-    closures: see `_fit_chart_float64`)."""
+    closures: see `_fit_chart_float64`).
+
+    The chart's event lists travel in blocks of pixels: every pass over them holds one
+    block's intermediates at a time, so the fit's memory is bounded by the block, not
+    by the sensor's width. The pixels are sorted by their number of events and cut into
+    buckets of similar counts (`bucket_rows`), each padded only to its own length:
+    `buckets[i]` is `(t, polarity, mask, column, spectrum)`, each
+    `(n_blocks, block, ...)`.
+    """
 
     rig: Rig
     basis: Any
-    dev: Any
+    buckets: Any
     spectra: Any
     fixed_traces: Any
     overlap: Any  # the band's overlap table: the band is not fitted, so computed once
     overlap_lo_nm: float = eqx.field(static=True)
     overlap_step_nm: float = eqx.field(static=True)
     fit_baseline: bool = eqx.field(static=True)
+    bucket_rows: tuple = eqx.field(static=True)  # ((first row, last row + 1), ...)
 
 
-def _fit_residuals(params, args):
-    """Chart residuals (per event) and the τx smoothness prior of the joint fit."""
-    profile, keep, fit = args
+def _by_event_count(data: ChartData) -> ChartData:
+    """The chart pixels sorted by their number of events, most first."""
+    return data.subset(np.argsort(-data.mask.sum(axis=1), kind="stable"))
+
+
+def _bucketed(data: ChartData, dtype):
+    """Sorted event lists → buckets of blocks (padding: no events) and their rows.
+
+    A bucket holds the pixels whose event count needs the same power-of-two length
+    (at least 8), in blocks of about `BLOCK_EVENTS` padded events."""
+    counts = data.mask.sum(axis=1)
+    need = np.array([max(8, 1 << int(max(c - 1, 0)).bit_length()) for c in counts])
+    buckets, rows = [], []
+    start = 0
+    while start < counts.size:
+        k = int(need[start])
+        stop = start + int(np.sum(need[start:] == k))
+        part = data.subset(slice(start, stop))
+        dev = _device(part, dtype)
+        dev = tuple(a[:, :k] if a.ndim == 2 else a for a in dev)
+        n = stop - start
+        block = int(max(1, min(n, BLOCK_EVENTS // k)))
+        n_blocks = -(-n // block)
+        pad = n_blocks * block - n
+
+        def cut(a, pad=pad, n_blocks=n_blocks, block=block):
+            a = jnp.pad(a, ((0, pad),) + ((0, 0),) * (a.ndim - 1))
+            return a.reshape((n_blocks, block) + a.shape[1:])
+
+        buckets.append(tuple(cut(a) for a in dev))
+        rows.append((start, stop))
+        start = stop
+    return tuple(buckets), tuple(rows)
+
+
+def _bucket_keep(keep, fit: _FitData, i: int):
+    """`keep` (one entry per sorted chart pixel) for bucket `i`, as its blocks."""
+    start, stop = fit.bucket_rows[i]
+    shape = fit.buckets[i][0].shape[:2]
+    return jnp.pad(keep[start:stop], (0, shape[0] * shape[1] - (stop - start))).reshape(
+        shape
+    )
+
+
+def _fit_rig(params, fit: _FitData) -> Rig:
     r = _apply(params, fit.rig, fit.basis)
     if not fit.fit_baseline:
         r = r.with_leaves(baseline_rel=fit.rig.baseline_rel)
+    return r
+
+
+def _fit_tables(params, fit: _FitData):
+    """The chart spectra's intensity traces over λc (and their photoreceptor-filtered
+    log levels when the rig has a low-pass; else an empty array) at `params`: computed
+    once per evaluation and shared by every block."""
+    r = _fit_rig(params, fit)
     traces = (
         BandTable(fit.fixed_traces, fit.overlap_lo_nm, fit.overlap_step_nm)
         if fit.fixed_traces is not None
@@ -137,34 +201,212 @@ def _fit_residuals(params, args):
             BandTable(fit.overlap, fit.overlap_lo_nm, fit.overlap_step_nm),
         )
     )
-    res = chart_residuals(r, fit.dev, traces, per_pixel=profile)
-    if keep is not None:
-        res = res * keep[:, None]
-    # The prior acts on the absolute offsets (the starting guess may be rough).
+    if r.effects.photoreceptor_hz > 0:
+        return traces.values, lowpassed_traces(r, traces).values
+    return traces.values, jnp.zeros((0,), traces.values.dtype)
+
+
+def _block_residuals(params, tables, block, keep, profile, fit: _FitData):
+    """Event residuals of one block of chart pixels, `(block, k)` (0 in padding and
+    in dropped pixels)."""
+    r = _fit_rig(params, fit)
+    lo, step = fit.overlap_lo_nm, fit.overlap_step_nm
+    traces = BandTable(tables[0], lo, step)
+    filtered = BandTable(tables[1], lo, step) if tables[1].size else None
+    res = chart_residuals(r, block, traces, per_pixel=profile, filtered=filtered)
+    return res * keep[:, None]
+
+
+def _prior_residuals(params, fit: _FitData):
+    """The τx smoothness prior: second differences of the absolute column offsets
+    (the starting guess may be rough), weighted."""
     tau = fit.rig.column_offsets_us + TAU_SCALE_US * params["tau"]
-    smooth = SMOOTH_WEIGHT * (tau[2:] - 2 * tau[1:-1] + tau[:-2])
-    return res.reshape(-1), smooth
+    return SMOOTH_WEIGHT * (tau[2:] - 2 * tau[1:-1] + tau[:-2])
+
+
+@eqx.filter_jit
+def _fit_residuals(params, profile, keep, fit: _FitData):
+    """Event residuals of every (sorted) chart pixel, `(n, k)`, block by block."""
+    tables = _fit_tables(params, fit)
+    k = max(b[0].shape[2] for b in fit.buckets)
+    out = []
+    for i, blocks in enumerate(fit.buckets):
+
+        def one(xs):
+            block, kb = xs
+            return _block_residuals(params, tables, block, kb, profile, fit)
+
+        res = jax.lax.map(one, (blocks, _bucket_keep(keep, fit, i)))
+        start, stop = fit.bucket_rows[i]
+        res = res.reshape((-1,) + res.shape[2:])[: stop - start]
+        out.append(jnp.pad(res, ((0, 0), (0, k - res.shape[1]))))
+    return jnp.concatenate(out)
+
+
+def _theta(u_flat, unravel, scale):
+    return jax.tree.map(lambda a, b: a / b, unravel(u_flat), scale)
+
+
+def _normal_equations(u_flat, unravel, scale, profile, keep, fit: _FitData, tau_idx):
+    """Gauss–Newton normal equations of the event residuals at `u_flat` (scaled,
+    flattened parameters), accumulated over blocks of pixels: the blocks of JᵀJ
+    (global × global, τx × global, the τx diagonal), of Jᵀr (global, τx) and rᵀr.
+
+    Each residual depends on the few global parameters and on its own column's τx
+    only, so a block's Jacobian is `G + 1` forward-mode products: one per global
+    parameter and one with every τx moved at once (each residual sees only its own).
+    The τx part of JᵀJ is then diagonal and the τx–global part one segment sum per
+    block; nothing larger than a block's residuals is ever held.
+    """
+    p = u_flat.shape[0]
+    w = tau_idx.size
+    g = p - w  # the globals come first in the flattened parameters (_tau_positions)
+    tans = jnp.zeros((g + 1, p), u_flat.dtype)
+    tans = tans.at[np.arange(g), np.arange(g)].set(1.0).at[g, tau_idx].set(1.0)
+    tables, tables_lin = jax.linearize(
+        lambda uf: _fit_tables(_theta(uf, unravel, scale), fit), u_flat
+    )
+    d_tables = jax.vmap(tables_lin)(tans)
+    dtype = u_flat.dtype
+
+    def body(carry, xs):
+        block, kb = xs
+
+        def f(uf, tb):
+            th = _theta(uf, unravel, scale)
+            return _block_residuals(th, tb, block, kb, profile, fit).reshape(-1)
+
+        r, jac = jax.vmap(
+            lambda t, dt: jax.jvp(f, (u_flat, tables), (t, dt)), out_axes=(None, 0)
+        )(tans, d_tables)  # r: (events,), jac: (G + 1, events)
+        jg, jt = jac[:g], jac[g]
+        # Per pixel first (all of a pixel's events share its column), then per column.
+        rows = block[0].shape[0]
+        col = block[3]
+
+        def per_column(v):  # (..., block * k) → (..., W)
+            v = v.reshape(v.shape[:-1] + (rows, -1)).sum(-1)
+            return jax.ops.segment_sum(jnp.moveaxis(v, -1, 0), col, num_segments=w)
+
+        hgg, hgt, htt, bg, bt, ss = carry
+        return (
+            hgg + jg @ jg.T,
+            hgt + per_column(jg * jt),
+            htt + per_column(jt * jt),
+            bg + jg @ r,
+            bt + per_column(jt * r),
+            ss + r @ r,
+        ), None
+
+    zero = (
+        jnp.zeros((g, g), dtype),
+        jnp.zeros((w, g), dtype),
+        jnp.zeros((w,), dtype),
+        jnp.zeros((g,), dtype),
+        jnp.zeros((w,), dtype),
+        jnp.zeros((), dtype),
+    )
+    carry = zero
+    for i, blocks in enumerate(fit.buckets):
+        xs = (blocks, _bucket_keep(keep, fit, i))
+        carry, _ = jax.lax.scan(body, carry, xs)
+    return carry
+
+
+def _tau_positions(u) -> np.ndarray:
+    """Positions of the τx entries in the flattened parameters: the last ones (dict
+    keys flatten sorted, and "tau" sorts last — the normal equations are assembled as
+    [globals, τx] blocks)."""
+    if sorted(u)[-1] != "tau":
+        raise AssertionError("the τx parameters must flatten last")
+    total = sum(int(np.size(v)) for v in u.values())
+    return np.arange(total - int(np.size(u["tau"])), total)
+
+
+def _fit_system(u, args):
+    """The fit's full normal equations (events and τx prior) at scaled parameters
+    `u`: `(JᵀJ, Jᵀr, rᵀr)` in the flattened variables."""
+    scale, (profile, keep, fit) = args
+    u_flat, unravel = jax.flatten_util.ravel_pytree(u)
+    tau_idx = _tau_positions(u)
+    w = tau_idx.size
+    hgg, hgt, htt, bg, bt, ss = _normal_equations(
+        u_flat, unravel, scale, profile, keep, fit, tau_idx
+    )
+    # The prior is linear in τx: row i of its Jacobian has three entries (columns i,
+    # i+1, i+2), so its share of JᵀJ is pentadiagonal and added by diagonals.
+    rp = _prior_residuals(_theta(u_flat, unravel, scale), fit)
+    c = SMOOTH_WEIGHT * TAU_SCALE_US / scale["tau"]  # d(τx)/d(u) times the weight
+    n = max(w - 2, 0)
+    bands = (c[:n], -2.0 * c[1 : n + 1], c[2 : n + 2])  # the entries of row i
+    htt = jnp.diag(htt)
+    bt = bt + sum(jnp.pad(v * rp, (q, w - n - q)) for q, v in enumerate(bands))
+    for off in range(3):  # diagonal `off` of the prior's Gram matrix
+        d = sum(
+            jnp.pad(bands[q] * bands[q + off], (q, w - n - q)) for q in range(3 - off)
+        )[: w - off]
+        htt = htt + jnp.diag(d, off) + (jnp.diag(d, -off) if off else 0.0)
+    h = jnp.block([[hgg, hgt.T], [hgt, htt]])
+    return h, jnp.concatenate([bg, bt]), ss + rp @ rp
+
+
+def _reduced(h, b, ss):
+    """A residual vector of length P + 1 and its Jacobian `(Lᵀ; 0)` (H = LLᵀ) with the
+    same Gauss–Newton model as the full residuals: JᵀJ = H, Jᵀr = b, ‖r‖² = ss."""
+    d = jnp.diag(h)
+    # Parameters the residuals do not depend on (profiled-out thresholds, c when it is
+    # not fitted): a unit pivot keeps the factorisation defined; their gradient is 0.
+    h = h + jnp.diag(jnp.where(d > 0, 1e-12 * jnp.max(d), 1.0))
+    lower = jnp.linalg.cholesky(h)
+    z = jax.scipy.linalg.solve_triangular(lower, b, lower=True)
+    rest = jnp.sqrt(jnp.maximum(ss - z @ z, 0.0))
+    return jnp.concatenate([z, rest[None]]), lower
 
 
 def _fit_residuals_scaled(u, args):
-    """`_fit_residuals` in the solver's scaled variables u = θ·s."""
-    scale, inner = args
-    return _fit_residuals(jax.tree.map(lambda a, b: a / b, u, scale), inner)
+    """What optimistix's Levenberg–Marquardt sees, in the scaled variables u = θ·s.
 
+    Not the ~10⁵–10⁶ event residuals themselves: their Gauss–Newton model reduced to
+    P + 1 numbers (P parameters). With $J^TJ = H = LL^T$, $b = J^Tr$, the vector
+    $\\tilde r = (L^{-1}b,\\ \\sqrt{\\|r\\|^2 - \\|L^{-1}b\\|^2})$ with Jacobian
+    $\\tilde J = (L^T; 0)$ has $\\tilde J^T\\tilde J = H$, $\\tilde J^T\\tilde r = b$
+    and $\\|\\tilde r\\| = \\|r\\|$: every quantity the solver uses (the damped
+    Gauss–Newton step, the actual and predicted reductions, the stopping tests) is the
+    full problem's. Its memory is that of one block of pixels plus P² (the events are
+    never linearised at once), and each conjugate-gradient iteration of a step is a
+    P × P product instead of a pass over all the events.
+    """
+    u_flat, unravel = jax.flatten_util.ravel_pytree(u)
+    # The rule is traced lazily (when the solver linearises), so the arrays it reads
+    # are arguments, not closed over; only static values are closed over.
+    dynamic, static = eqx.partition(args, eqx.is_array)
 
-_fit_residuals_jit = eqx.filter_jit(_fit_residuals)
+    @jax.custom_jvp
+    def reduced(uf, dyn):
+        return _reduced(*_fit_system(unravel(uf), eqx.combine(dyn, static)))[0]
+
+    @reduced.defjvp
+    def reduced_jvp(primals, tangents):
+        (uf, dyn), (tf, _) = primals, tangents
+        r, lower = _reduced(*_fit_system(unravel(uf), eqx.combine(dyn, static)))
+        return r, jnp.concatenate([lower.T @ tf, jnp.zeros((1,), tf.dtype)])
+
+    return reduced(u_flat, dynamic)
 
 
 @eqx.filter_jit
-def _fit_jvp(p0, tangent, fit):
-    return jax.jvp(
-        lambda q: _fit_residuals(q, (False, None, fit))[0], (p0,), (tangent,)
-    )[1]
+def _data_system(u, args):
+    """Normal equations of the event residuals alone (no prior)."""
+    scale, (profile, keep, fit) = args
+    u_flat, unravel = jax.flatten_util.ravel_pytree(u)
+    return _normal_equations(
+        u_flat, unravel, scale, profile, keep, fit, _tau_positions(u)
+    )
 
 
 @eqx.filter_jit
-def _fit_sum_sq(params, args):
-    return jnp.sum(_fit_residuals(params, args)[0] ** 2)
+def _fit_sum_sq(params, profile, keep, fit):
+    return jnp.sum(_fit_residuals(params, profile, keep, fit) ** 2)
 
 
 def _apply(params, base: Rig, basis=None) -> Rig:
@@ -431,40 +673,18 @@ def _screened_chart_data(
     return data, events, hot
 
 
-def _jacobi_scale(p0: dict, fit: _FitData, dev, shape, w: int) -> dict:
-    """Each parameter's Jacobian column norm at `p0` (floored): the change of variables
-    of :func:`_fit_chart_float64`."""
-    dtype = p0["tau"].dtype
-    res_col = jnp.broadcast_to(dev[3][:, None], shape).reshape(-1)
-
-    def jcol(tangent):
-        return _fit_jvp(p0, tangent, fit)
-
-    zero_t = jax.tree.map(jnp.zeros_like, p0)
-    scale = {}
-    for k in ("log_on", "log_off", "log_beta", "log_c") + (
-        ("curv",) if "curv" in p0 else ()
-    ):
-        scale[k] = jnp.linalg.norm(jcol({**zero_t, k: jnp.ones((), dtype)}))
-    scale["resp"] = (
-        jnp.stack(
-            [
-                jnp.linalg.norm(
-                    jcol({**zero_t, "resp": jnp.eye(p0["resp"].size, dtype=dtype)[j]})
-                )
-                for j in range(p0["resp"].size)
-            ]
-        )
-        if p0["resp"].size
-        else jnp.zeros((0,), dtype)
-    )
-    d_tau = jcol({**zero_t, "tau": jnp.ones((w,), dtype)})
-    scale["tau"] = jnp.sqrt(jax.ops.segment_sum(d_tau**2, res_col, num_segments=w))
-    scale = {
+def _jacobi_scale(p0: dict, keep, fit: _FitData) -> dict:
+    """Each parameter's Jacobian column norm at `p0` (floored), from the diagonal of
+    the event residuals' normal equations: the change of variables of
+    :func:`_fit_chart_float64`."""
+    ones = jax.tree.map(jnp.ones_like, p0)
+    hgg, _, htt, _, _, _ = _data_system(p0, (ones, (False, keep, fit)))
+    _, unravel = jax.flatten_util.ravel_pytree(p0)
+    norms = unravel(jnp.sqrt(jnp.maximum(jnp.concatenate([jnp.diag(hgg), htt]), 0.0)))
+    return {
         k: jnp.maximum(v, 1e-6 * jnp.max(v) + 1e-30) if v.size else v
-        for k, v in scale.items()
+        for k, v in norms.items()
     }
-    return scale
 
 
 def _fit_chart_float64(
@@ -522,7 +742,7 @@ def _fit_chart_float64(
     if from_data:
         rig = initial_guess(data, rig)
     dtype = rig.fwhm_nm.dtype
-    dev = _device(data, dtype)
+    data = _by_event_count(data)  # (the buckets of the fit's passes)
     basis = _response_basis(rig, response_degree)
     fixed_traces = (  # the table's values (a BandTable is not a pytree leaf holder)
         None if response_degree else spectral_traces(rig, data.spectra).values
@@ -542,27 +762,28 @@ def _fit_chart_float64(
     # compiled function depends on shapes only: one compilation per shape in a
     # process, and the persistent cache serves the next process.
     overlap = band_overlap(rig)
-    fit = _FitData(rig, basis, dev, jnp.asarray(data.spectra, dtype), fixed_traces,
+    buckets, bucket_rows = _bucketed(data, dtype)
+    fit = _FitData(rig, basis, buckets, jnp.asarray(data.spectra, dtype), fixed_traces,
                    overlap.values, overlap.lo_nm, overlap.step_nm,
-                   fit_baseline)  # fmt: skip
+                   fit_baseline, bucket_rows)  # fmt: skip
+    ones = jnp.ones_like(keep)
 
-    def residuals(params, args):
-        profile, keep = args if isinstance(args, tuple) else (args, None)
-        return _fit_residuals_jit(params, (profile, keep, fit))
+    def residuals(params, profile, keep):
+        return _fit_residuals(params, profile, keep, fit)
 
     # Jacobi scaling by change of variables (u = θ·s, s = column norms of the Jacobian at
     # the start): the Gauss–Newton matrix then has a unit diagonal and is "identity plus
     # the rank-4 coupling of the global parameters", so the matrix-free CG inside each
-    # Levenberg–Marquardt step converges in a few iterations. Each residual depends on
-    # one τx only, so one JVP with all-ones τ tangents gives every column's norm.
-    scale = _jacobi_scale(p0, fit, dev, data.t_us.shape, w)
+    # Levenberg–Marquardt step converges in a few iterations.
+    scale = _jacobi_scale(p0, keep, fit)
 
     def theta_of(u):
         return jax.tree.map(lambda a, b: a / b, u, scale)
 
     def rms_of(params, profile):
-        n = int((data.mask & (np.asarray(keep) > 0)[:, None]).sum())
-        return float(jnp.sqrt(_fit_sum_sq(params, (profile, keep, fit)) / max(n, 1)))
+        kept = np.asarray(keep) > 0
+        n = int((data.mask & kept[:, None]).sum())
+        return float(jnp.sqrt(_fit_sum_sq(params, profile, keep, fit) / max(n, 1)))
 
     r0 = rms_of(p0, False)
     solver = optx.LevenbergMarquardt(
@@ -602,15 +823,15 @@ def _fit_chart_float64(
             # Robustness: a pixel with an event the model cannot explain (a noise
             # event inside the lit interval, a missed crossing) is dropped whole —
             # one bad event also corrupts its neighbour's reference.
-            r = np.asarray(residuals(params, per_pixel)[0]).reshape(data.t_us.shape)
+            r = np.asarray(residuals(params, per_pixel, ones))
             bad_px = _outlier_pixels(r, data.mask)
             outlier_pixels = int(bad_px.sum())
             if 0 < outlier_pixels < 0.5 * bad_px.size:
                 keep = jnp.asarray(~bad_px, dtype)
     rms = rms_of(params, per_pixel)
-    res_final = np.asarray(residuals(params, (per_pixel, keep))[0])
-    res_final = res_final.reshape(data.t_us.shape)
-    data = dataclasses.replace(data, mask=data.mask & (np.asarray(keep) > 0)[:, None])
+    res_final = np.asarray(residuals(params, per_pixel, keep))
+    kept = np.asarray(keep) > 0
+    data = dataclasses.replace(data, mask=data.mask & kept[:, None])
     fitted = _apply(params, rig, basis)
     if not fit_baseline:
         fitted = fitted.with_leaves(baseline_rel=rig.baseline_rel)

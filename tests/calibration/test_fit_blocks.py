@@ -1,0 +1,100 @@
+"""The calibration's blocked Gauss–Newton system against a dense Jacobian.
+
+`_fit_chart_float64` hands optimistix a reduced residual built from normal equations
+accumulated over blocks of pixels; here they are checked against `jax.jacfwd` of the
+whole residual vector (every event and the τx prior) on a small chart, with blocks
+small enough that the pixels fall into several count buckets and several blocks each.
+"""
+
+import jax
+import jax.flatten_util
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
+import pytest
+
+import evhsi_jax as ev
+from evhsi_jax._calibrate import _fit as F
+from evhsi_jax._calibrate._chart import chart_data
+from evhsi_jax._model import band_overlap
+
+
+@pytest.fixture(scope="module")
+def system():
+    h, w = 12, 6
+    truth = ev.Rig(threshold_on=0.17, photoreceptor_hz=20000.0)
+    chart = ev.load_scene("gray-chart", (h, w))
+    events = ev.simulate(chart, truth, sweeps=1, key=jr.key(5))
+    with jax.enable_x64(True):
+        rig = F._with_column_offsets(ev.Rig(photoreceptor_hz=20000.0), w).astype(
+            jnp.float64
+        )
+        data = F._by_event_count(chart_data(events, chart, rig, rows_per_label=None))
+        old = F.BLOCK_EVENTS
+        F.BLOCK_EVENTS = 64  # several blocks per bucket
+        try:
+            buckets, rows = F._bucketed(data, jnp.float64)
+        finally:
+            F.BLOCK_EVENTS = old
+        ov = band_overlap(rig)
+        fit = F._FitData(rig, F._response_basis(rig, 2), buckets,
+                         jnp.asarray(data.spectra), None, ov.values, ov.lo_nm,
+                         ov.step_nm, True, rows)  # fmt: skip
+        key = jr.key(1)
+        u = {  # away from the start, so every derivative is non-trivial
+            "log_on": jnp.asarray(0.02),
+            "log_off": jnp.asarray(-0.01),
+            "log_beta": jnp.asarray(0.003),
+            "log_c": jnp.asarray(0.05),
+            "curv": jnp.asarray(0.4),
+            "tau": 0.05 * jr.normal(key, (w,), jnp.float64),
+            "resp": jnp.asarray([0.03, -0.02]),
+        }
+        scale = jax.tree.map(lambda a: 1.5 + jnp.zeros_like(a), u)
+        keep = jnp.ones(data.t_us.shape[0]).at[3].set(0.0)  # one pixel dropped
+        yield u, scale, keep, fit, data, buckets
+
+
+def _dense(u, scale, keep, fit, profile):
+    flat, unravel = jax.flatten_util.ravel_pytree(u)
+
+    def all_residuals(uf):
+        th = F._theta(uf, unravel, scale)
+        res = F._fit_residuals(th, profile, keep, fit).reshape(-1)
+        return jnp.concatenate([res, F._prior_residuals(th, fit)])
+
+    r = all_residuals(flat)
+    j = jax.jacfwd(all_residuals)(flat)
+    return j.T @ j, j.T @ r, r @ r
+
+
+@pytest.mark.parametrize("profile", [False, True])
+def test_blocked_normal_equations_match_the_dense_jacobian(system, profile):
+    u, scale, keep, fit, data, buckets = system
+    assert len(buckets) >= 2 and max(b[0].shape[0] for b in buckets) >= 2
+    with jax.enable_x64(True):
+        h, b, ss = F._fit_system(u, (scale, (profile, keep, fit)))
+        h_ref, b_ref, ss_ref = _dense(u, scale, keep, fit, profile)
+    np.testing.assert_allclose(h, h_ref, rtol=1e-9, atol=1e-9 * float(jnp.max(h_ref)))
+    np.testing.assert_allclose(b, b_ref, rtol=1e-9, atol=1e-9 * float(jnp.max(abs(b_ref))))
+    np.testing.assert_allclose(ss, ss_ref, rtol=1e-12)
+
+
+def test_reduced_residual_has_the_full_gauss_newton_model(system):
+    u, scale, keep, fit, *_ = system
+    args = (scale, (True, keep, fit))
+    with jax.enable_x64(True):
+        flat, unravel = jax.flatten_util.ravel_pytree(u)
+        red = F._fit_residuals_scaled(u, args)
+        jt = jax.jacfwd(lambda uf: F._fit_residuals_scaled(unravel(uf), args))(flat)
+        h_ref, b_ref, ss_ref = _dense(u, scale, keep, fit, True)
+    # Profiled thresholds: their columns are zero and get a unit pivot (gradient 0).
+    live = np.asarray(jnp.diag(h_ref) > 0)
+    assert (~live).sum() == 2
+    np.testing.assert_allclose(float(red @ red), float(ss_ref), rtol=1e-10)
+    np.testing.assert_allclose((jt.T @ red)[live], b_ref[live], rtol=1e-7,
+                               atol=1e-9 * float(jnp.max(abs(b_ref))))  # fmt: skip
+    np.testing.assert_allclose(jt.T @ red, jnp.where(live, jt.T @ red, 0.0), atol=1e-12)
+    gn = (jt.T @ jt)[np.ix_(live, live)]
+    np.testing.assert_allclose(gn, h_ref[np.ix_(live, live)], rtol=1e-7,
+                               atol=1e-9 * float(jnp.max(h_ref)))  # fmt: skip
