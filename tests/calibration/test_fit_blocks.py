@@ -76,7 +76,9 @@ def test_blocked_normal_equations_match_the_dense_jacobian(system, profile):
         h, b, ss = F._fit_system(u, (scale, (profile, keep, fit)))
         h_ref, b_ref, ss_ref = _dense(u, scale, keep, fit, profile)
     np.testing.assert_allclose(h, h_ref, rtol=1e-9, atol=1e-9 * float(jnp.max(h_ref)))
-    np.testing.assert_allclose(b, b_ref, rtol=1e-9, atol=1e-9 * float(jnp.max(abs(b_ref))))
+    np.testing.assert_allclose(
+        b, b_ref, rtol=1e-9, atol=1e-9 * float(jnp.max(abs(b_ref)))
+    )
     np.testing.assert_allclose(ss, ss_ref, rtol=1e-12)
 
 
@@ -98,3 +100,49 @@ def test_reduced_residual_has_the_full_gauss_newton_model(system):
     gn = (jt.T @ jt)[np.ix_(live, live)]
     np.testing.assert_allclose(gn, h_ref[np.ix_(live, live)], rtol=1e-7,
                                atol=1e-9 * float(jnp.max(h_ref)))  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def noisy_chart():
+    """A gray chart recorded for 8 sweeps by a sensor with per-crossing noise: more
+    events per pixel than the fit's lists keep (256)."""
+    h, w = 12, 8
+    rig = ev.Rig(threshold_noise=0.01)
+    chart = ev.load_scene("gray-chart", (h, w))
+    events, info = ev.simulate(chart, rig, sweeps=8, key=jr.key(2), return_info=True)
+    return rig, chart, events, info
+
+
+def test_threshold_maps_in_row_bands_equal_one_pass(noisy_chart, monkeypatch):
+    from evhsi_jax._calibrate import _chart as C
+
+    rig, chart, events, _ = noisy_chart
+    kw = dict(psf_sigmas_px=(0.0, 0.5), return_psf=True)
+    whole = C.threshold_maps_from_chart(events, chart, rig, **kw)
+    monkeypatch.setattr(C, "MAP_BLOCK_EVENTS", len(events) // 5)
+    assert len(C._row_bands(events, C.MAP_BLOCK_EVENTS)) >= 5
+    banded = C.threshold_maps_from_chart(events, chart, rig, **kw)
+    assert banded[2] == whole[2]
+    # Pixels with a stray event are refitted against their band's robust spread.
+    for a, b in zip(banded[:2], whole[:2]):
+        assert np.mean(np.isclose(a, b, rtol=0, atol=1e-12)) > 0.95
+        np.testing.assert_allclose(a, b, atol=2e-3)
+
+
+def test_threshold_maps_use_every_event_of_a_long_chart(noisy_chart, monkeypatch):
+    from evhsi_jax._calibrate import _chart as C
+
+    rig, chart, events, info = noisy_chart
+    counts = np.bincount(events.y.astype(np.int64) * events.width + events.x)
+    assert counts.max() > 256  # the fit's lists would cut these pixels short
+
+    def err(maps):
+        return float(np.sqrt(np.mean((maps[0] - info.threshold_on) ** 2)))
+
+    kw = dict(psf_sigmas_px=(0.0,))
+    all_events = err(C.threshold_maps_from_chart(events, chart, rig, **kw))
+    monkeypatch.setattr(C, "MAP_MAX_EVENTS", 48)  # about one sweep
+    first_sweep = err(C.threshold_maps_from_chart(events, chart, rig, **kw))
+    # ~8x the events: the noise part of the error averages down (the rest is the
+    # censoring of crossings near the sweep's peak, the same for both).
+    assert all_events < 0.8 * first_sweep
