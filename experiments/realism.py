@@ -30,6 +30,7 @@ Run: `.venv/bin/python experiments/realism.py [--size 32x48] [--quick]`
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -110,6 +111,7 @@ def run_case(
     seed: int,
     band_known: bool = True,
     chart_sweeps: int = CHART_SWEEPS,
+    true_maps: bool = False,
 ) -> dict:
     h, w = size
     chart = ev.load_scene("gray-chart", (h, w))
@@ -136,8 +138,15 @@ def run_case(
     out = {"calibration_s": time.perf_counter() - t0, "measured": cal.report}
     lit = lit_channels(cal.rig)
     for sweeps in HELD_OUT_SWEEPS:
-        events = ev.simulate(scene, true, sweeps=sweeps, key=key)
-        for name, c in (("old", old), ("new", cal)):
+        events, info = ev.simulate(
+            scene, true, sweeps=sweeps, key=key, return_info=True
+        )
+        variants = [("old", old), ("new", cal)]
+        if true_maps:  # what the calibration's maps cost: the same rig, the true maps
+            variants.append(("new_true_maps", dataclasses.replace(
+                cal, threshold_on=info.threshold_on, threshold_off=info.threshold_off
+            )))  # fmt: skip
+        for name, c in variants:
             if name == "old" and sweeps != 1:
                 continue
             t1 = time.perf_counter()
@@ -173,6 +182,11 @@ def main(argv=None):
         "--only", help="comma-separated effect names to run (e.g. 'realistic preset')"
     )
     ap.add_argument(
+        "--true-maps",
+        action="store_true",
+        help="also reconstruct with the sensor's true threshold maps (calibrated rig)",
+    )
+    ap.add_argument(
         "--chart-sweeps",
         type=int,
         default=CHART_SWEEPS,
@@ -206,6 +220,7 @@ def main(argv=None):
             args.seed,
             band_known="not given" not in name,
             chart_sweeps=args.chart_sweeps,
+            true_maps=args.true_maps,
         )
         # Each sensor compiles its own programs; a 30-case run in one process ran out
         # of LLVM code memory without this.
@@ -222,7 +237,12 @@ def main(argv=None):
             f"(optics {n4['optics_sam_deg']:5.2f}° {n4['optics_psnr_db']:6.2f} dB)  "
             f"[{n['min']:.2f}, {n['max']:.2f}]  lit/dim channels 1 sweep "
             f"{n['psnr_lit_db']:.2f}/{n['psnr_dim_db']:.2f} dB, 4 sweeps "
-            f"{n4['psnr_lit_db']:.2f}/{n4['psnr_dim_db']:.2f} dB",
+            f"{n4['psnr_lit_db']:.2f}/{n4['psnr_dim_db']:.2f} dB"
+            + "".join(
+                f"  true maps {sw}: {r[k]['sam_deg']:.2f}° {r[k]['psnr_db']:.2f} dB"
+                for sw, k in (("1", "new_true_maps"), ("4", "new_true_maps_4"))
+                if k in r
+            ),
             flush=True,
         )
     result = {

@@ -331,6 +331,7 @@ def _log_steps(rig: Rig, data: ChartData, block_events: int = 1 << 20):
 
 
 PSF_GRID_PX = (0.0, 0.25, 0.4, 0.5, 0.6, 0.75, 1.0, 1.5)  # blur σ searched, pixels
+STRAY_FLOOR = 0.5  # threshold units: the least residual of a stray event
 MAP_MAX_EVENTS = 4096  # events per pixel the maps use (a chart recorded for ~2 s)
 MAP_BLOCK_EVENTS = 1 << 22  # events per band of sensor rows in the maps' passes
 
@@ -341,6 +342,19 @@ def _rms_own_thresholds(steps, data: ChartData, c_on, c_off) -> np.ndarray:
     with np.errstate(invalid="ignore", divide="ignore"):
         r = np.where(data.mask, steps / c_px - data.polarity, np.nan)
         return np.sqrt(np.nanmean(r**2, axis=1))
+
+
+def _robust_spread(steps, data: ChartData, c_on, c_off) -> np.ndarray:
+    """Per-pixel robust spread of the residuals with the pixel's own thresholds
+    (1.4826 × median |r|, threshold units): a pixel off the model everywhere (dirt,
+    a defect) stands out; one with a few stray events does not."""
+    c_px = np.where(data.polarity > 0, c_on[:, None], c_off[:, None])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = np.where(data.mask, np.abs(steps / c_px - data.polarity), np.nan)
+    out = np.full(r.shape[0], np.nan)
+    has = data.mask.any(axis=1)
+    out[has] = 1.4826 * np.nanmedian(r[has], axis=1)
+    return out
 
 
 def _closed_form_thresholds(steps: np.ndarray, data: ChartData):
@@ -450,9 +464,11 @@ def threshold_maps_from_chart(
         if d is None:
             continue
         d, steps, on_b, off_b, rms_b = fitted(d, seen_charts[best])
-        on_b, off_b, rms_b = _refit_without_stray_events(
+        on_b, off_b, rms_b, d, steps = _refit_without_stray_events(
             rig, d, steps, on_b, off_b, rms_b
         )
+        on_b, off_b, kept = _sweep_robust_thresholds(steps, d, float(rig.period_us))
+        rms_b = _robust_spread(steps, dataclasses.replace(d, mask=kept), on_b, off_b)
         pix.append(d.pixel), c_on.append(on_b), c_off.append(off_b)
         rms_px.append(rms_b)
     if not pix:
@@ -490,16 +506,19 @@ def _refit_without_stray_events(rig: Rig, d: ChartData, steps, c_on, c_off, rms_
     that event removed from the pixel's list (so the next event refers to the one
     before it). One noise event would otherwise cost the whole pixel its own
     thresholds (it would fail the misfit test); with a gray chart recorded for many
-    sweeps most pixels catch one. `steps` are `d`'s model log steps."""
+    sweeps most pixels catch one. `steps` are `d`'s model log steps.
+
+    **Returns:** `(c_on, c_off, rms_px, d, steps)`, the last two with those pixels'
+    lists compacted and their steps recomputed."""
     c_px = np.where(d.polarity > 0, c_on[:, None], c_off[:, None])
     with np.errstate(invalid="ignore", divide="ignore"):
         r = np.where(d.mask, steps / c_px - d.polarity, 0.0)
     r = np.nan_to_num(r, nan=np.inf)
     sigma = 1.4826 * float(np.median(np.abs(r[d.mask]))) if d.mask.any() else 0.0
-    stray = d.mask & (np.abs(r) > max(0.5, 6.0 * sigma))
+    stray = d.mask & (np.abs(r) > max(STRAY_FLOOR, 6.0 * sigma))
     rows = np.flatnonzero(stray.any(axis=1) & (d.mask.sum(axis=1) > stray.sum(axis=1)))
     if rows.size == 0:
-        return c_on, c_off, rms_px
+        return c_on, c_off, rms_px, d, steps
     sub = d.subset(rows)
     keep = sub.mask & ~stray[rows]
     # Compact each row's remaining events to the front (padding stays at the end).
@@ -516,7 +535,55 @@ def _refit_without_stray_events(rig: Rig, d: ChartData, steps, c_on, c_off, rms_
     rms2 = _rms_own_thresholds(steps2, sub, on2, off2)
     c_on, c_off, rms_px = c_on.copy(), c_off.copy(), rms_px.copy()
     c_on[rows], c_off[rows], rms_px[rows] = on2, off2, rms2
-    return c_on, c_off, rms_px
+    full = {k: getattr(d, k).copy() for k in ("t_us", "polarity", "mask")}
+    for k in full:
+        full[k][rows] = getattr(sub, k)
+    steps = steps.copy()
+    steps[rows] = steps2
+    return c_on, c_off, rms_px, dataclasses.replace(d, **full), steps
+
+
+SWEEP_OUTLIER_MADS = 5.0  # a sweep's estimate this many robust σ off is dropped
+SWEEP_OUTLIER_FLOOR = 0.01  # ... and at least this fraction of the threshold off
+
+
+def _sweep_robust_thresholds(steps, d: ChartData, period_us: float):
+    """Per-pixel thresholds without the sweeps whose own estimate is an outlier.
+
+    A stray event below the stray-event limit (a background event that lands where
+    its step and the next one are both within half a threshold of the model) biases
+    every estimate made from its pixel's whole list; on a chart recorded for many
+    sweeps most pixels catch one. Each sweep of a pixel gives its own closed-form
+    estimate; sweeps beyond `SWEEP_OUTLIER_MADS` robust σ of the pixel's median
+    (and beyond `SWEEP_OUTLIER_FLOOR` of it: a noise-free sensor's sweeps agree to
+    ~1e-4) are dropped and the rest pooled. With fewer than three sweeps nothing is
+    dropped. **Returns:** `(c_on, c_off, mask)` — the events kept.
+    """
+    sweep = np.floor(np.maximum(d.t_us, 0.0) / period_us).astype(np.int64)
+    n_sweeps = int(sweep[d.mask].max()) + 1 if d.mask.any() else 1
+    rows = np.broadcast_to(np.arange(d.t_us.shape[0])[:, None], d.t_us.shape)
+    keep = d.mask.copy()
+    out = []
+    for sign in (1, -1):
+        sel = d.mask & (d.polarity == sign)
+        num = np.zeros((d.t_us.shape[0], n_sweeps))
+        den = np.zeros_like(num)
+        np.add.at(num, (rows[sel], sweep[sel]), steps[sel] ** 2)
+        np.add.at(den, (rows[sel], sweep[sel]), sign * steps[sel])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            per = np.where(den > 0, num / den, np.nan)
+            med = np.nanmedian(per, axis=1, keepdims=True)
+            mad = 1.4826 * np.nanmedian(np.abs(per - med), axis=1, keepdims=True)
+        limit = np.maximum(SWEEP_OUTLIER_MADS * mad, SWEEP_OUTLIER_FLOOR * med)
+        enough = np.isfinite(per).sum(axis=1, keepdims=True) >= 3
+        bad = enough & (np.abs(per - med) > limit)
+        keep &= ~(sel & bad[rows, sweep])
+        good = ~bad & np.isfinite(per)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            c = (num * good).sum(1) / (den * good).sum(1)
+        c[~(c > 0)] = np.nan
+        out.append(c)
+    return out[0], out[1], keep
 
 
 def _seen_through(data: ChartData, chart: Scene, rig: Rig) -> ChartData:
