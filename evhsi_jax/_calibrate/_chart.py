@@ -333,7 +333,7 @@ def _log_steps(rig: Rig, data: ChartData, block_events: int = 1 << 20):
 PSF_GRID_PX = (0.0, 0.25, 0.4, 0.5, 0.6, 0.75, 1.0, 1.5)  # blur σ searched, pixels
 STRAY_FLOOR = 0.5  # threshold units: the least residual of a stray event
 MAP_MAX_EVENTS = 4096  # events per pixel the maps use (a chart recorded for ~2 s)
-MAP_BLOCK_EVENTS = 1 << 20  # events per band of sensor rows in the maps' passes
+MAP_BLOCK_EVENTS = 1 << 21  # events per band of sensor rows in the maps' passes
 
 
 def _rms_own_thresholds(steps, data: ChartData, c_on, c_off) -> np.ndarray:
