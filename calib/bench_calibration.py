@@ -26,28 +26,13 @@ import time
 from pathlib import Path
 
 import jax.random as jr
-import numpy as np
 from run_calibration import rms, true_rig, true_values
 
 import evhsi_jax as ev
 
 HERE = Path(__file__).parent
-
-
-def matmul_gflops(n: int = 1024, repeats: int = 5) -> float:
-    """This machine's float32 matmul rate (GFLOP/s, median of `repeats`)."""
-    import jax
-    import jax.numpy as jnp
-
-    a = jnp.ones((n, n), jnp.float32)
-    f = jax.jit(lambda x: x @ x)
-    f(a).block_until_ready()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        f(a).block_until_ready()
-        times.append(time.perf_counter() - t0)
-    return 2 * n**3 / float(np.median(times)) / 1e9
+sys.path.insert(0, str(HERE.parent / "experiments"))
+from _common import matmul_gflops  # noqa: E402  (the studies' one copy)
 
 
 def run_cli(events_path: Path, out: Path, cache: Path, rows: int) -> dict:
