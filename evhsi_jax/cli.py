@@ -579,6 +579,8 @@ def cmd_calibrate(args):
     chart = load_scene(
         args.chart, size if not str(args.chart).endswith(".npz") else None
     )
+    if args.max_steps < 1:
+        raise ValueError(f"--max-steps must be >= 1, got {args.max_steps}")
     res = calibrate(
         events,
         chart,
@@ -586,6 +588,7 @@ def cmd_calibrate(args):
         per_pixel=not args.global_only,
         rows_per_label=args.rows_per_patch,
         t_start_us=args.t_start_us,
+        max_steps=args.max_steps,
     )
     rig = res.rig
     cfg = save_calibration(
@@ -919,6 +922,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--global-only", action="store_true", help="skip the per-pixel threshold maps"
+    )
+    p.add_argument(
+        "--max-steps",
+        type=int,
+        default=60,
+        help="Levenberg–Marquardt step limit per stage; a fit that reaches it is "
+        "refused (default 60)",
     )
     p.add_argument(
         "--t-start-us",

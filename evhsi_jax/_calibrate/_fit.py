@@ -855,6 +855,13 @@ def _fit_chart_float64(
             f"{MAX_RMS_RESIDUAL}); is the capture a gray chart of the given size, "
             "lit by the sweep?"
         )
+    if not converged:
+        raise ValueError(
+            f"the calibration did not converge: Levenberg–Marquardt stopped after "
+            f"{steps} steps (limit {max_steps} per stage) at RMS residual {rms:.3f} "
+            "thresholds; is the capture a gray chart of this rig? (max_steps raises "
+            "the limit)"
+        )
     fitted = fitted.replace_host(
         threshold_noise=noise["threshold_noise"],
         timestamp_jitter_us=noise["timestamp_jitter_us"],

@@ -190,3 +190,20 @@ def test_cli_calibrate_writes_a_file_reconstruct_reads(tmp_path, capture):
     )
     assert bad.returncode != 0 and "Traceback" not in bad.stderr
     assert not (tmp_path / "d.json").exists()
+    short = subprocess.run(  # a fit stopped by its step limit: refused, no file
+        [*evhsi, "calibrate", str(tmp_path / "gray.npz"), "--out",
+         str(tmp_path / "e.json"), "--max-steps", "1"],
+        capture_output=True,
+        text=True,
+    )  # fmt: skip
+    assert short.returncode == 2, short.stderr
+    assert "did not converge" in short.stderr and len(short.stderr.splitlines()) == 1
+    assert not (tmp_path / "e.json").exists()
+
+
+def test_a_fit_that_did_not_converge_is_refused(capture):
+    """Levenberg–Marquardt stopped by its step limit: no rig is returned (the CLI
+    prints the one line and exits 2), even though the residual may look fine."""
+    _, chart, events, _ = capture
+    with pytest.raises(ValueError, match="did not converge"):
+        ev.calibrate(events, chart, ev.Rig(), rows_per_label=None, max_steps=2)
