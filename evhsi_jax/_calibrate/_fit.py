@@ -10,8 +10,11 @@ everywhere ($I + ε \\ge c + ε > 0$), and with no reconstruction inside. They a
 fitted jointly with optimistix's Levenberg–Marquardt for the ON/OFF thresholds, the
 sweep coefficient β, the constant light c, a smooth correction of D(λ) and one time
 offset τx per column (with a second-difference smoothness prior
-across columns); the normal equations are solved matrix-free (lineax NormalCG), so a
-1280-column sensor (≈1300 unknowns) needs no dense Jacobian.
+across columns). The event residuals are never linearised all at once: their
+Gauss–Newton normal equations are accumulated over blocks of pixels and the solver sees
+a reduced residual with the same model (:func:`_fit_residuals_scaled`), so memory is
+bounded by a block and a 1280-column sensor (≈1300 unknowns) needs a 1300² matrix, not
+a dense Jacobian over its events.
 
 **What gray patches can and cannot separate.**
 
@@ -337,15 +340,16 @@ def _fit_system(u, args):
     # i+1, i+2), so its share of JᵀJ is pentadiagonal and added by diagonals.
     rp = _prior_residuals(_theta(u_flat, unravel, scale), fit)
     c = SMOOTH_WEIGHT * TAU_SCALE_US / scale["tau"]  # d(τx)/d(u) times the weight
-    n = max(w - 2, 0)
-    bands = (c[:n], -2.0 * c[1 : n + 1], c[2 : n + 2])  # the entries of row i
+    n = w - 2  # prior rows (none for a sensor under three columns)
     htt = jnp.diag(htt)
-    bt = bt + sum(jnp.pad(v * rp, (q, w - n - q)) for q, v in enumerate(bands))
-    for off in range(3):  # diagonal `off` of the prior's Gram matrix
-        d = sum(
-            jnp.pad(bands[q] * bands[q + off], (q, w - n - q)) for q in range(3 - off)
-        )[: w - off]
-        htt = htt + jnp.diag(d, off) + (jnp.diag(d, -off) if off else 0.0)
+    if n > 0:
+        bands = (c[:n], -2.0 * c[1 : n + 1], c[2 : n + 2])  # the entries of row i
+        bt = bt + sum(jnp.pad(v * rp, (q, 2 - q)) for q, v in enumerate(bands))
+        for off in range(3):  # diagonal `off` of the prior's Gram matrix
+            d = sum(
+                jnp.pad(bands[q] * bands[q + off], (q, 2 - q)) for q in range(3 - off)
+            )[: w - off]
+            htt = htt + jnp.diag(d, off) + (jnp.diag(d, -off) if off else 0.0)
     h = jnp.block([[hgg, hgt.T], [hgt, htt]])
     return h, jnp.concatenate([bg, bt]), ss + rp @ rp
 
