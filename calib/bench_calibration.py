@@ -44,9 +44,8 @@ def run_cli(events_path: Path, out: Path, cache: Path, rows: int) -> dict:
     with tempfile.TemporaryFile("w+") as err:
         proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=err)
         _, status, usage = os.wait4(proc.pid, 0)  # this child's own peak memory
-        proc.returncode = os.waitstatus_to_exitcode(status)
         wall = time.perf_counter() - t0
-        if proc.returncode != 0:
+        if os.waitstatus_to_exitcode(status) != 0:
             err.seek(0)
             raise SystemExit(f"evhsi calibrate failed: {err.read().strip()[-400:]}")
     return {"seconds": wall, "peak_rss_mb": usage.ru_maxrss / 1024}

@@ -11,6 +11,7 @@ accounted for.
 from __future__ import annotations
 
 import dataclasses
+import warnings
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -336,11 +337,18 @@ MAP_MAX_EVENTS = 4096  # events per pixel the maps use (a chart recorded for ~2 
 MAP_BLOCK_EVENTS = 1 << 21  # events per band of sensor rows in the maps' passes
 
 
-def _rms_own_thresholds(steps, data: ChartData, c_on, c_off) -> np.ndarray:
-    """Per-pixel RMS residual (threshold units) with the pixel's own thresholds."""
+def _own_residuals(steps, data: ChartData, c_on, c_off) -> np.ndarray:
+    """Residuals (threshold units) with each pixel's own thresholds, `(n, k)`; NaN in
+    padding and where the pixel has no threshold of the event's polarity."""
     c_px = np.where(data.polarity > 0, c_on[:, None], c_off[:, None])
     with np.errstate(invalid="ignore", divide="ignore"):
-        r = np.where(data.mask, steps / c_px - data.polarity, np.nan)
+        return np.where(data.mask, steps / c_px - data.polarity, np.nan)
+
+
+def _rms_own_thresholds(steps, data: ChartData, c_on, c_off) -> np.ndarray:
+    """Per-pixel RMS residual (threshold units) with the pixel's own thresholds."""
+    r = _own_residuals(steps, data, c_on, c_off)
+    with np.errstate(invalid="ignore"):
         return np.sqrt(np.nanmean(r**2, axis=1))
 
 
@@ -348,12 +356,12 @@ def _robust_spread(steps, data: ChartData, c_on, c_off) -> np.ndarray:
     """Per-pixel robust spread of the residuals with the pixel's own thresholds
     (1.4826 × median |r|, threshold units): a pixel off the model everywhere (dirt,
     a defect) stands out; one with a few stray events does not."""
-    c_px = np.where(data.polarity > 0, c_on[:, None], c_off[:, None])
-    with np.errstate(invalid="ignore", divide="ignore"):
-        r = np.where(data.mask, np.abs(steps / c_px - data.polarity), np.nan)
+    r = np.abs(_own_residuals(steps, data, c_on, c_off))
     out = np.full(r.shape[0], np.nan)
     has = data.mask.any(axis=1)
-    out[has] = 1.4826 * np.nanmedian(r[has], axis=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN: no thresholds
+        out[has] = 1.4826 * np.nanmedian(r[has], axis=1)
     return out
 
 
@@ -417,7 +425,11 @@ def threshold_maps_from_chart(
     seen_charts = [chart.blurred(float(v)) for v in psf_sigmas_px]
     bands = _row_bands(events, MAP_BLOCK_EVENTS)
 
+    last: list = []  # the latest band's lists: pass 2 starts with pass 1's last band
+
     def band_data(y0, y1):
+        if last and last[0] == (y0, y1):
+            return last[1]
         rows = np.zeros((h, w), bool)
         rows[y0:y1] = True
         try:
@@ -425,13 +437,16 @@ def threshold_maps_from_chart(
                            rows_per_label=None, max_events=MAP_MAX_EVENTS,
                            pixels=rows)  # fmt: skip
         except ValueError:  # no events in these rows
-            return None
-        k = max(8, 1 << int(d.t_us.shape[1] - 1).bit_length())  # few compiled shapes
-        pad = ((0, 0), (0, k - d.t_us.shape[1]))
-        return dataclasses.replace(
-            d, t_us=np.pad(d.t_us, pad), polarity=np.pad(d.polarity, pad),
-            mask=np.pad(d.mask, pad),
-        )  # fmt: skip
+            d = None
+        else:
+            k = max(8, 1 << int(d.t_us.shape[1] - 1).bit_length())  # few shapes
+            pad = ((0, 0), (0, k - d.t_us.shape[1]))
+            d = dataclasses.replace(
+                d, t_us=np.pad(d.t_us, pad), polarity=np.pad(d.polarity, pad),
+                mask=np.pad(d.mask, pad),
+            )  # fmt: skip
+        last[:] = [(y0, y1), d]
+        return d
 
     def fitted(d, seen):
         d = _seen_through(d, seen, rig)
@@ -441,8 +456,7 @@ def threshold_maps_from_chart(
             d, spectra=np.pad(d.spectra, ((0, n_spec - d.spectra.shape[0]), (0, 0)))
         )
         steps = _log_steps(rig, d)
-        c_on, c_off = _closed_form_thresholds(steps, d)
-        return d, steps, c_on, c_off, _rms_own_thresholds(steps, d, c_on, c_off)
+        return d, steps, *_closed_form_thresholds(steps, d)
 
     # Pass 1: the blur, by the total squared residual over all pixels; the pixels are
     # taken a band of sensor rows at a time, so memory is bounded by the band.
@@ -453,20 +467,18 @@ def threshold_maps_from_chart(
             if d is None:
                 continue
             for i, seen in enumerate(seen_charts):
-                _, _, _, _, rms_px = fitted(d, seen)
+                _, steps, c_on, c_off = fitted(d, seen)
+                rms_px = _rms_own_thresholds(steps, d, c_on, c_off)
                 ssr[i] += float(np.nansum(rms_px**2 * d.mask.sum(1)))
     best = int(np.argmin(ssr))
     psf = float(psf_sigmas_px[best])
     # Pass 2: each pixel's thresholds seen through that blur.
     pix, c_on, c_off, rms_px = [], [], [], []
-    for y0, y1 in bands:
+    for y0, y1 in reversed(bands):
         d = band_data(y0, y1)
         if d is None:
             continue
-        d, steps, on_b, off_b, rms_b = fitted(d, seen_charts[best])
-        on_b, off_b, rms_b, d, steps = _refit_without_stray_events(
-            rig, d, steps, on_b, off_b, rms_b
-        )
+        d, steps = _without_stray_events(rig, *fitted(d, seen_charts[best]))
         on_b, off_b, kept = _sweep_robust_thresholds(steps, d, float(rig.period_us))
         rms_b = _robust_spread(steps, dataclasses.replace(d, mask=kept), on_b, off_b)
         pix.append(d.pixel), c_on.append(on_b), c_off.append(off_b)
@@ -499,26 +511,24 @@ def _row_bands(events: EventStream, budget: int) -> list[tuple[int, int]]:
     return bands
 
 
-def _refit_without_stray_events(rig: Rig, d: ChartData, steps, c_on, c_off, rms_px):
-    """Closed-form thresholds again for pixels with a stray event — one whose residual
-    with the pixel's own thresholds is beyond max(0.5, 6 robust σ) thresholds: a
-    background event inside the lit interval, or a crossing the model misses — with
-    that event removed from the pixel's list (so the next event refers to the one
-    before it). One noise event would otherwise cost the whole pixel its own
-    thresholds (it would fail the misfit test); with a gray chart recorded for many
-    sweeps most pixels catch one. `steps` are `d`'s model log steps.
+def _without_stray_events(rig: Rig, d: ChartData, steps, c_on, c_off):
+    """The event lists with each pixel's stray events removed — an event whose residual
+    with the pixel's own thresholds `c_on`, `c_off` is beyond max(0.5, 6 robust σ)
+    thresholds: a background event inside the lit interval, or a crossing the model
+    misses — so the next event refers to the one before it (the simulator's noise
+    events do not reset the pixel). One noise event would otherwise bias the pixel's
+    thresholds or cost it them (the misfit test); with a gray chart recorded for many
+    sweeps many pixels catch one. `steps` are `d`'s model log steps.
 
-    **Returns:** `(c_on, c_off, rms_px, d, steps)`, the last two with those pixels'
-    lists compacted and their steps recomputed."""
-    c_px = np.where(d.polarity > 0, c_on[:, None], c_off[:, None])
-    with np.errstate(invalid="ignore", divide="ignore"):
-        r = np.where(d.mask, steps / c_px - d.polarity, 0.0)
-    r = np.nan_to_num(r, nan=np.inf)
+    **Returns:** `(d, steps)`, those pixels' lists compacted and their steps
+    recomputed."""
+    r = _own_residuals(steps, d, c_on, c_off)
+    r = np.where(d.mask, np.nan_to_num(r, nan=np.inf), 0.0)
     sigma = 1.4826 * float(np.median(np.abs(r[d.mask]))) if d.mask.any() else 0.0
     stray = d.mask & (np.abs(r) > max(STRAY_FLOOR, 6.0 * sigma))
     rows = np.flatnonzero(stray.any(axis=1) & (d.mask.sum(axis=1) > stray.sum(axis=1)))
     if rows.size == 0:
-        return c_on, c_off, rms_px, d, steps
+        return d, steps
     sub = d.subset(rows)
     keep = sub.mask & ~stray[rows]
     # Compact each row's remaining events to the front (padding stays at the end).
@@ -530,17 +540,12 @@ def _refit_without_stray_events(rig: Rig, d: ChartData, steps, c_on, c_off, rms_
         polarity=take(np.where(keep, sub.polarity, 0)),
         mask=take(keep),
     )
-    steps2 = _log_steps(rig, sub)
-    on2, off2 = _closed_form_thresholds(steps2, sub)
-    rms2 = _rms_own_thresholds(steps2, sub, on2, off2)
-    c_on, c_off, rms_px = c_on.copy(), c_off.copy(), rms_px.copy()
-    c_on[rows], c_off[rows], rms_px[rows] = on2, off2, rms2
     full = {k: getattr(d, k).copy() for k in ("t_us", "polarity", "mask")}
     for k in full:
         full[k][rows] = getattr(sub, k)
     steps = steps.copy()
-    steps[rows] = steps2
-    return c_on, c_off, rms_px, dataclasses.replace(d, **full), steps
+    steps[rows] = _log_steps(rig, sub)
+    return dataclasses.replace(d, **full), steps
 
 
 SWEEP_OUTLIER_MADS = 5.0  # a sweep's estimate this many robust σ off is dropped
@@ -570,7 +575,8 @@ def _sweep_robust_thresholds(steps, d: ChartData, period_us: float):
         den = np.zeros_like(num)
         np.add.at(num, (rows[sel], sweep[sel]), steps[sel] ** 2)
         np.add.at(den, (rows[sel], sweep[sel]), sign * steps[sel])
-        with np.errstate(invalid="ignore", divide="ignore"):
+        with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN: no such sweep
             per = np.where(den > 0, num / den, np.nan)
             med = np.nanmedian(per, axis=1, keepdims=True)
             mad = 1.4826 * np.nanmedian(np.abs(per - med), axis=1, keepdims=True)

@@ -246,8 +246,13 @@ def _fit_residuals(params, profile, keep, fit: _FitData):
     return jnp.concatenate(out)
 
 
+def _unscale(u, scale):
+    """Solver variables u = θ·s → parameters θ."""
+    return jax.tree.map(lambda a, b: a / b, u, scale)
+
+
 def _theta(u_flat, unravel, scale):
-    return jax.tree.map(lambda a, b: a / b, unravel(u_flat), scale)
+    return _unscale(unravel(u_flat), scale)
 
 
 def _normal_equations(u_flat, unravel, scale, profile, keep, fit: _FitData, tau_idx):
@@ -301,7 +306,7 @@ def _normal_equations(u_flat, unravel, scale, profile, keep, fit: _FitData, tau_
             ss + r @ r,
         ), None
 
-    zero = (
+    carry = (  # the sums start at zero
         jnp.zeros((g, g), dtype),
         jnp.zeros((w, g), dtype),
         jnp.zeros((w,), dtype),
@@ -309,7 +314,6 @@ def _normal_equations(u_flat, unravel, scale, profile, keep, fit: _FitData, tau_
         jnp.zeros((w,), dtype),
         jnp.zeros((), dtype),
     )
-    carry = zero
     for i, blocks in enumerate(fit.buckets):
         xs = (blocks, _bucket_keep(keep, fit, i))
         carry, _ = jax.lax.scan(body, carry, xs)
@@ -326,19 +330,28 @@ def _tau_positions(u) -> np.ndarray:
     return np.arange(total - int(np.size(u["tau"])), total)
 
 
+def _events_system(u, args):
+    """Normal equations of the event residuals alone (no prior) at scaled parameters
+    `u`, as the blocks of :func:`_normal_equations`."""
+    scale, (profile, keep, fit) = args
+    u_flat, unravel = jax.flatten_util.ravel_pytree(u)
+    return _normal_equations(
+        u_flat, unravel, scale, profile, keep, fit, _tau_positions(u)
+    )
+
+
+_data_system = eqx.filter_jit(_events_system)
+
+
 def _fit_system(u, args):
     """The fit's full normal equations (events and τx prior) at scaled parameters
     `u`: `(JᵀJ, Jᵀr, rᵀr)` in the flattened variables."""
-    scale, (profile, keep, fit) = args
-    u_flat, unravel = jax.flatten_util.ravel_pytree(u)
-    tau_idx = _tau_positions(u)
-    w = tau_idx.size
-    hgg, hgt, htt, bg, bt, ss = _normal_equations(
-        u_flat, unravel, scale, profile, keep, fit, tau_idx
-    )
+    scale, (_, _, fit) = args
+    hgg, hgt, htt, bg, bt, ss = _events_system(u, args)
+    w = htt.shape[0]
     # The prior is linear in τx: row i of its Jacobian has three entries (columns i,
     # i+1, i+2), so its share of JᵀJ is pentadiagonal and added by diagonals.
-    rp = _prior_residuals(_theta(u_flat, unravel, scale), fit)
+    rp = _prior_residuals(_unscale(u, scale), fit)
     c = SMOOTH_WEIGHT * TAU_SCALE_US / scale["tau"]  # d(τx)/d(u) times the weight
     n = w - 2  # prior rows (none for a sensor under three columns)
     htt = jnp.diag(htt)
@@ -396,16 +409,6 @@ def _fit_residuals_scaled(u, args):
         return r, jnp.concatenate([lower.T @ tf, jnp.zeros((1,), tf.dtype)])
 
     return reduced(u_flat, dynamic)
-
-
-@eqx.filter_jit
-def _data_system(u, args):
-    """Normal equations of the event residuals alone (no prior)."""
-    scale, (profile, keep, fit) = args
-    u_flat, unravel = jax.flatten_util.ravel_pytree(u)
-    return _normal_equations(
-        u_flat, unravel, scale, profile, keep, fit, _tau_positions(u)
-    )
 
 
 @eqx.filter_jit
@@ -781,9 +784,6 @@ def _fit_chart_float64(
     # Levenberg–Marquardt step converges in a few iterations.
     scale = _jacobi_scale(p0, keep, fit)
 
-    def theta_of(u):
-        return jax.tree.map(lambda a, b: a / b, u, scale)
-
     def rms_of(params, profile):
         kept = np.asarray(keep) > 0
         n = int((data.mask & kept[:, None]).sum())
@@ -815,7 +815,7 @@ def _fit_chart_float64(
         steps += int(sol.stats["num_steps"])
         converged = sol.result == optx.RESULTS.successful
         u = sol.value
-        params = theta_of(u)
+        params = _unscale(u, scale)
         if not all(bool(jnp.all(jnp.isfinite(v))) for v in jax.tree.leaves(params)):
             raise ValueError("the calibration diverged (non-finite parameters)")
         if verbose:
