@@ -251,6 +251,8 @@ def cmd_reconstruct(args):
         return_info=True,
         mesh=_mesh(args.devices),
         deblur=_DEBLUR[args.deblur],
+        backend=args.backend,
+        threads=args.threads,
     )
     elapsed = time.perf_counter() - t0
     notes = []
@@ -372,6 +374,8 @@ def _run_sweeps(args, cal, out, roi, stop):
         should_stop=lambda: stop["asked"],
         roi=roi,
         deblur=_DEBLUR[args.deblur],
+        backend=args.backend,
+        threads=args.threads,
     )
 
 
@@ -828,6 +832,22 @@ def build_parser() -> argparse.ArgumentParser:
         "splits it into N XLA host devices: --devices 2 uses both cores of a "
         "2-core machine); default: every core of a CPU (at most 8) for a whole "
         "recording, one device with --per-sweep",
+    )
+    p.add_argument(
+        "--backend",
+        default="auto",
+        choices=["auto", "jax", "fused"],
+        help="auto (default): the fused CPU kernel (each pixel's system formed from "
+        "band segments and solved in float64 on every core) where it applies — "
+        "ideal-sensor calibration, active-set solver, solve on a CPU — else the JAX "
+        "kernels; jax or fused to choose (fused refuses what it cannot run)",
+    )
+    p.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        metavar="N",
+        help="worker threads of the fused backend (default: every usable core)",
     )
     p.add_argument(
         "--solver",

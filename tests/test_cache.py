@@ -110,16 +110,17 @@ def test_off_and_failures_fall_back(cache_on, monkeypatch):
 
 
 def test_reconstruction_through_stored_programs(cache_on, monkeypatch):
-    """`ev.reconstruct` with the cache on: the cube of a second process (empty memo,
-    stored programs) equals that of the kernels run directly, bit for bit."""
+    """`ev.reconstruct` (its JAX backend) with the cache on: the cube of a second
+    process (empty memo, stored programs) equals that of the kernels run directly,
+    bit for bit."""
     scene = ev.load_scene("colorchecker", (8, 12))
     rig = ev.Rig()
     events = ev.simulate(scene, rig, key=jax.random.key(3))
-    first = ev.reconstruct(events, rig)
+    first = ev.reconstruct(events, rig, backend="jax")
     assert list(cache_on.glob("reconstruct_chunk-*.bin"))
     _cache._EXPORTED.clear()
-    second = ev.reconstruct(events, rig)
+    second = ev.reconstruct(events, rig, backend="jax")
     monkeypatch.setattr(_cache, "_ENABLED", [])
-    direct = ev.reconstruct(events, rig)
+    direct = ev.reconstruct(events, rig, backend="jax")
     np.testing.assert_array_equal(first, direct)
     np.testing.assert_array_equal(second, direct)

@@ -77,20 +77,24 @@ def use_backend(name: str) -> Iterator[None]:
         _forced = before
 
 
-def njit(fn: Callable | None = None, *, inline: bool = False) -> Callable:
+def njit(
+    fn: Callable | None = None, *, inline: bool = False, fastmath=False
+) -> Callable:
     """`numba.njit(cache=True, nogil=True)`, without the cache when no folder for it is
     writable (numba raises then instead of falling back). `inline=True`: inlined into
-    its callers by numba (`inline="always"`; such helpers are not cached themselves)."""
+    its callers by numba (`inline="always"`; such helpers are not cached themselves).
+    `fastmath`: numba's LLVM flags (e.g. `{"reassoc", "contract"}` lets sums be
+    vectorised in a different order)."""
     import numba
 
     if fn is None:
-        return lambda f: njit(f, inline=inline)
+        return lambda f: njit(f, inline=inline, fastmath=fastmath)
     if inline:
-        return numba.njit(inline="always")(fn)
+        return numba.njit(inline="always", fastmath=fastmath)(fn)
     try:
-        return numba.njit(cache=True, nogil=True)(fn)
+        return numba.njit(cache=True, nogil=True, fastmath=fastmath)(fn)
     except RuntimeError:
-        return numba.njit(nogil=True)(fn)
+        return numba.njit(nogil=True, fastmath=fastmath)(fn)
 
 
 def readonly(a: np.ndarray, dtype) -> np.ndarray:

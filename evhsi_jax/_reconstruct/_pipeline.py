@@ -24,7 +24,8 @@ from .._base import call_exported, check_fits, shard, use_numba
 from .._model import Calibration, EventStream, Rig, band_table
 from . import _solvers
 from ._deblur import deblur_cube
-from ._pixels import PixelEvents, group_pixels
+from ._fused import FusedProblem, fused_supported, solve_fused
+from ._pixels import PixelEvents, group_pixels, pixel_lists
 from ._problem import ProblemConfig, lit_interval_us, pixel_system, system_from_rows
 
 __all__ = ["SolverSpec", "SOLVERS", "reconstruct", "ReconstructionInfo", "solver_spec"]
@@ -387,6 +388,8 @@ def reconstruct(
     return_info: bool = False,
     mesh=None,
     deblur: bool | None = None,
+    backend: str = "auto",
+    threads: int | None = None,
 ):
     """Reconstruct a reflectance cube from an event recording of a static scene.
 
@@ -424,6 +427,15 @@ def reconstruct(
       (:func:`evhsi_jax.reconstruction.deblur_cube`). Default (`None`): when that σ
       is > 0, i.e. when the calibration measured a blur (README "Real sensors" has
       what it gains and costs, `experiments/deblur.py`).
+    - `backend`: `"jax"` (each chunk of pixels assembled and solved by a compiled JAX
+      kernel: any solver, noise model and device), `"fused"` (the CPU kernel of
+      :mod:`._fused`: each pixel's system formed from band segments and solved where
+      it is formed, in float64, on `threads` cores; the ideal-sensor problem with the
+      active-set solver only — a `ValueError` says why otherwise) or `"auto"`
+      (default): fused where it applies and the solve would run on a CPU, else JAX.
+      The fused cube is the float64 solve of the same events (within 0.01° SAM of the
+      JAX path run in float64; float32 JAX differs from both by its rounding).
+    - `threads`: worker threads of the fused backend (default: the usable cores).
     - `mesh`: a `jax.sharding.Mesh` with a `"pixels"` axis
       (:func:`evhsi_jax.sharding.pixel_mesh`): each chunk's pixels are split over its devices,
       `chunk_pixels` per device, each with the same per-pixel kernel. A one-device
@@ -474,6 +486,16 @@ def reconstruct(
         t_start_us = int(round(t_start_us + first * period))
         stop = int(math.ceil(t_start_us + sweeps * period))
         events = events.time_window(t_start_us, stop)
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    if threads is not None and int(threads) < 1:
+        raise ValueError(f"threads must be >= 1, got {threads}")
+    why_not = fused_supported(spec, cfg, noise)
+    if backend == "fused" and why_not is not None:
+        raise ValueError(f"the fused backend cannot run this reconstruction: {why_not}")
+    fused = backend == "fused" or (
+        backend == "auto" and why_not is None and shard.device_platform(mesh) == "cpu"
+    )
     chunk_pixels, sub_batch = batch_sizes(chunk_pixels, sub_batch, mesh)
     sub = max(1, min(sub_batch, chunk_pixels))
     solve, n_dev = _solve_chunk_stored, 1
@@ -487,13 +509,17 @@ def reconstruct(
     # A bucket's last chunk is padded to sub × 2^j (small images and buckets pad
     # little); a bucket of fewer than a quarter chunk of pixels joins the next one
     # (one compiled shape less for a little padding).
-    batches, counts, _ = group_pixels(
-        screened,
-        t_start_us=t_start_us,
-        chunk_pixels=chunk * n_dev,
-        min_chunk=sub * n_dev,
-        merge_below=chunk * n_dev // 4,
-    )
+    if fused:
+        lists = pixel_lists(screened, t_start_us)
+        batches, counts = [], lists[0]
+    else:
+        batches, counts, _ = group_pixels(
+            screened,
+            t_start_us=t_start_us,
+            chunk_pixels=chunk * n_dev,
+            min_chunk=sub * n_dev,
+            merge_below=chunk * n_dev // 4,
+        )
     lead = _reference_lead_us(reference_us, t_start_us, period, h, w)
     dtype = rig.fwhm_nm.dtype  # float32 or float64: the rig decides
     table = channel_table(rig)
@@ -518,6 +544,11 @@ def reconstruct(
         unit="px",
         desc=f"reconstruct ({spec.name})",
     )
+    if fused:
+        _solve_fused_all(
+            rig, table, cfg, spec, sweeps, lists, lead, offsets_all, thr_on, thr_off,
+            cube, kkt_all, threads, bar.update,
+        )  # fmt: skip
     for b in batches:
         valid = b.pixel >= 0
         pix = np.where(valid, b.pixel, 0)
@@ -589,6 +620,58 @@ def reconstruct(
         first_sweep=first,
     )
     return cube, info
+
+
+BACKENDS = ("auto", "jax", "fused")
+
+
+def _solve_fused_all(
+    rig, table, cfg, spec, sweeps, lists, lead, offsets, thr_on, thr_off, cube, kkt_all,
+    threads, progress,
+):  # fmt: skip
+    """Every pixel with events through the fused CPU kernel (:mod:`._fused`), into
+    `cube` and `kkt_all`; a pixel whose float64 factorisation failed (a system
+    singular to rounding: not seen in tests) is re-solved by :func:`_solve_robust`."""
+    counts, starts, t_rel, sgn = lists
+    sel = np.flatnonzero(counts)
+    if sel.size == 0:
+        return
+    w = offsets.size
+    prob = FusedProblem(rig, table, cfg, spec, w, offsets, sweeps)
+    x, kkt, steps = solve_fused(
+        prob, sel, starts, counts, t_rel, sgn, lead, thr_on, thr_off,
+        threads=threads, progress=progress,
+    )  # fmt: skip
+    bad = steps < 0
+    if bad.any():
+        idx = sel[bad]
+        n_pad = 1 << int(math.ceil(math.log2(idx.size)))
+        idx_p = np.concatenate([idx, np.full(n_pad - idx.size, idx[0])])
+        k = int(counts[idx].max())
+        slot = np.arange(k)
+        mask = slot[None, :] < counts[idx_p][:, None]
+        at = np.where(mask, starts[idx_p][:, None] + slot, 0)
+        t = t_rel[at]
+        d = lead[idx_p]
+        dtype = np.dtype(rig.fwhm_nm.dtype)
+        px = PixelEvents(
+            *jax.device_put(
+                (
+                    np.where(mask, t + d[:, None], 0.0).astype(dtype),
+                    np.where(mask, sgn[at], 0).astype(np.int32),
+                    mask,
+                    offsets[idx_p % w].astype(dtype),
+                    thr_on[idx_p].astype(dtype),
+                    thr_off[idx_p].astype(dtype),
+                    (-d).astype(dtype),
+                )
+            )
+        )
+        xr, kr = _solve_robust(rig, table, cfg, max(spec.iters, 48), px, sweeps, None)
+        x[bad] = np.asarray(xr)[: idx.size]
+        kkt[bad] = np.asarray(kr)[: idx.size]
+    cube[sel] = x
+    kkt_all[sel] = kkt
 
 
 def screen_events(

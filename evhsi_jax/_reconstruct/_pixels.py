@@ -19,7 +19,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from .._base import stable_argsort_int, use_numba
 from .._model import EventStream
 
-__all__ = ["PixelBatch", "PixelEvents", "group_pixels", "bucket_sizes"]
+__all__ = ["PixelBatch", "PixelEvents", "group_pixels", "pixel_lists", "bucket_sizes"]
 
 MIN_BUCKET = 16
 TIMESTAMP_CENTRE_US = 0.5
@@ -140,7 +140,7 @@ def group_pixels(
     **Returns:** `(batches, counts, t0)` — a list of :class:`PixelBatch`, the event count
     of every pixel `(H*W,)`, and the start time used.
     """
-    w, h = events.width, events.height
+    w = events.width
     if t_start_us is None:
         if events.trigger_t_us.size:
             t_start_us = int(events.trigger_t_us[0])
@@ -148,21 +148,15 @@ def group_pixels(
             t_start_us = int(events.t_us[0])
         else:
             t_start_us = 0
-    pix = events.y.astype(np.int64) * w + events.x.astype(np.int64)
     jit = None
     if use_numba():
         from . import _group_jit as jit
-    counts = np.bincount(pix, minlength=w * h)
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    counts, starts, t_rel, sgn = pixel_lists(events, t_start_us)
     use = counts if max_events is None else np.minimum(counts, max_events)
     batches = []
     active = np.nonzero(use > 0)[0]
     if active.size == 0:
         return batches, counts, t_start_us
-    # Stable (time order kept within a pixel): a counting sort by pixel with numba.
-    order = stable_argsort_int(pix)
-    t_rel = (events.t_us[order] - t_start_us).astype(np.float64) + TIMESTAMP_CENTRE_US
-    sgn = events.polarity_sign[order]
     sizes = bucket_sizes(int(use[active].max()))
     lower = 0
     carried = active[:0]
@@ -209,3 +203,23 @@ def group_pixels(
                 )
             )
     return batches, counts, t_start_us
+
+
+def pixel_lists(events: EventStream, t_start_us: int):
+    """Every pixel's events, in pixel order and time order within a pixel.
+
+    **Returns:** `(counts, starts, t_us, sign)` — events per pixel `(H*W,)`, where each
+    pixel's events start `(H*W,)`, their times relative to `t_start_us` plus
+    `TIMESTAMP_CENTRE_US` (float64) and polarities ±1 (int8): pixel p's events are
+    `t_us[starts[p] : starts[p] + counts[p]]`. The sort is stable (a counting sort by
+    pixel with numba)."""
+    w, h = events.width, events.height
+    pix = events.y.astype(np.int64) * w + events.x.astype(np.int64)
+    counts = np.bincount(pix, minlength=w * h)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    if pix.size == 0:
+        return counts, starts, np.zeros(0), np.zeros(0, np.int8)
+    order = stable_argsort_int(pix)
+    t_rel = (events.t_us[order] - t_start_us).astype(np.float64) + TIMESTAMP_CENTRE_US
+    sgn = np.asarray(events.polarity_sign[order], np.int8)
+    return counts, starts, t_rel, sgn

@@ -512,6 +512,8 @@ def reconstruct_sweeps(
     should_stop: Callable[[], bool] | None = None,
     roi: tuple[int, int, int, int] | None = None,
     deblur: bool | None = None,
+    backend: str = "auto",
+    threads: int | None = None,
 ) -> StreamResult:
     """Reconstruct every sweep of a recording into its own cube file (resumable).
 
@@ -653,6 +655,8 @@ def reconstruct_sweeps(
                     mesh=mesh,
                     return_info=True,
                     deblur=deblur,
+                    backend=backend,
+                    threads=threads,
                 )
                 dt = time.perf_counter() - t0
                 solve_s += dt

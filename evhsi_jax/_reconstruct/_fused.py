@@ -1,0 +1,172 @@
+"""The fused CPU path: each pixel's system assembled from band segments and solved
+where it is formed (numba), on every core.
+
+The JAX path forms every pixel's rows densely (M+1 wide), their Gram matrix by a
+batched matrix product and then solves; on a CPU the dense Gram is most of the time,
+although a row touches only the channels the band overlaps at its two or three times
+(~20 of 72 on the paper's rig). Here, per pixel and in float64:
+
+1. each row is added into Q as the outer product of its *span* (the channels where its
+   bands are above `TRIM` × the table's peak), Q's envelope (the first touched column
+   of each row) tracked as it grows;
+2. the spectral prior (banded for `spec_kind="d2"`) and the ridge are added;
+3. an *envelope* Cholesky (fill-in stays inside the envelope) gives the unconstrained
+   minimiser; where a bound is violated the primal active-set method of
+   :func:`._solvers.active_set_batch` runs with the same steps and tolerance.
+
+The arithmetic is float64 whatever the rig's dtype (a float32 input is exact in it):
+this is the issue's "mixed precision", and it makes the answer the float64 solve of
+the same events rather than one defined by the rounding of a float32 Gram matrix with
+cond(Q) up to ~1e8. Entries of the band table below `TRIM` of its peak (1e-10: below
+float32's own resolution of a row) are treated as zero; that is the only difference to
+the dense problem of :func:`._problem.pixel_system` in float64 (tests compare the two).
+
+Scope: the ideal-sensor problem (no noise model), the active-set solver and the
+linear table lookup — what `reconstruct` uses by default for a calibration without
+sensor noise. Everything else (noise-aware rows, the photoreceptor model, other
+solvers, cubic lookup, gradients, accelerators) stays on the JAX path
+(:func:`fused_supported`). Threads: pixels are handed out in blocks to `threads`
+workers; the kernel releases the GIL.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import os
+
+import numpy as np
+
+from .._base._numba import numba_available
+from .._model import Rig
+from ._problem import INT_TARGETS, ProblemConfig, spectral_prior_matrix
+
+__all__ = ["fused_supported", "FusedProblem", "solve_fused", "usable_cores"]
+
+#: Table entries below this fraction of the table's peak count as zero.
+TRIM = 1e-10
+#: Pixels handed to a worker at a time (load balance against per-call overhead).
+BLOCK_PIXELS = 512
+
+
+def usable_cores() -> int:
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def fused_supported(spec, cfg: ProblemConfig, noise) -> str | None:
+    """Why the fused path cannot run this reconstruction (None: it can)."""
+    if not numba_available():
+        return "numba is not available"
+    if spec.name != "active-set":
+        return f"solver {spec.name!r} (the fused path is the active-set solver)"
+    if noise is not None:
+        return "a sensor noise model (noise-aware rows run on the JAX path)"
+    if cfg.lookup_order != 1:
+        return "lookup_order 3"
+    return None
+
+
+class FusedProblem:
+    """The rig- and configuration-dependent inputs of the kernel, built once."""
+
+    def __init__(self, rig: Rig, table, cfg: ProblemConfig, spec, width: int,
+                 column_offsets_us: np.ndarray, sweeps: int):  # fmt: skip
+        from ._problem import lit_interval_us
+
+        tab = np.asarray(table.values, np.float64)
+        m = tab.shape[1]
+        peak = float(np.max(np.abs(tab))) if tab.size else 0.0
+        big = np.abs(tab) > TRIM * peak
+        any_ = big.any(axis=1)
+        self.span_lo = np.where(any_, np.argmax(big, axis=1), m).astype(np.int64)
+        self.span_hi = np.where(
+            any_, m - np.argmax(big[:, ::-1], axis=1), 0
+        ).astype(np.int64)
+        self.table = np.ascontiguousarray(tab)
+        self.tabsum = tab.sum(axis=1)
+        s = spectral_prior_matrix(m, cfg.m_start_frac, cfg.spec_kind)
+        nz = np.abs(s) > 0
+        self.spec = np.ascontiguousarray(s)
+        self.spec_first = np.where(
+            nz.any(axis=1), np.argmax(nz, axis=1), np.arange(m)
+        ).astype(np.int64)
+        self.spec_first = np.minimum(self.spec_first, np.arange(m))
+        f = lambda v: float(np.asarray(v))  # noqa: E731
+        speed = f(rig.band_speed_nm_per_us)
+        arrive, leave = (f(v) for v in lit_interval_us(rig, 0.0))
+        par = np.zeros(19)
+        par[:19] = [
+            f(rig.baseline_level), f(rig.refractory_us), f(rig.period_us), speed,
+            f(rig.sweep_start_nm), f(rig.sweep_curvature_nm),
+            0.5 * (rig.grid.start_nm + rig.grid.stop_nm),
+            0.5 * (rig.grid.stop_nm - rig.grid.start_nm),
+            arrive, leave, rig.grid.width_nm / speed, cfg.alpha_int, cfg.alpha_spec,
+            cfg.ridge, cfg.peak_height, spec.tol, float(np.trace(s)),
+            float(table.lo_nm), 1.0 / float(table.step_nm),
+        ]  # fmt: skip
+        self.par = par
+        self.ipar = np.array(
+            [sweeps, cfg.int_points, INT_TARGETS.index(cfg.int_target),
+             int(cfg.normalise), int(rig.reset_mode == "release"), spec.iters],
+            np.int64,
+        )  # fmt: skip
+        self.width = int(width)
+        self.col_off = np.ascontiguousarray(column_offsets_us, np.float64)
+        self.channels = m
+        if not cfg.nonneg:
+            raise ValueError("the fused path solves the box QP (nonneg=True)")
+
+
+def solve_fused(
+    prob: FusedProblem,
+    sel: np.ndarray,
+    starts: np.ndarray,
+    use: np.ndarray,
+    t_sorted: np.ndarray,
+    s_sorted: np.ndarray,
+    lead: np.ndarray,
+    thr_on: np.ndarray,
+    thr_off: np.ndarray,
+    *,
+    threads: int | None = None,
+    progress=None,
+):
+    """Solve pixels `sel` (flat indices) from their events in pixel order (CSR:
+    `starts`, `use`). Returns `(x (n, M) float64, kkt (n,), steps (n,))`; a pixel whose
+    factorisation failed has NaN x and steps −1."""
+    from . import _fused_jit as jit
+
+    n, m = sel.size, prob.channels
+    x = np.empty((n, m))
+    kkt = np.empty(n)
+    steps = np.empty(n, np.int64)
+    args = (
+        np.ascontiguousarray(starts, np.int64), np.ascontiguousarray(use, np.int64),
+        np.ascontiguousarray(t_sorted, np.float64),
+        np.ascontiguousarray(s_sorted, np.int8), np.ascontiguousarray(lead, np.float64),
+        prob.col_off, np.int64(prob.width), np.ascontiguousarray(thr_on, np.float64),
+        np.ascontiguousarray(thr_off, np.float64), prob.table, prob.tabsum,
+        prob.span_lo, prob.span_hi, prob.spec, prob.spec_first, prob.par, prob.ipar,
+    )  # fmt: skip
+    sel = np.ascontiguousarray(sel, np.int64)
+
+    def run(lo):
+        hi = min(lo + BLOCK_PIXELS, n)
+        jit.solve_pixels(sel[lo:hi], *args, x[lo:hi], kkt[lo:hi], steps[lo:hi])
+        return hi - lo
+
+    blocks = range(0, n, BLOCK_PIXELS)
+    threads = usable_cores() if threads is None else max(1, int(threads))
+    if threads == 1 or n <= BLOCK_PIXELS:
+        for lo in blocks:
+            done = run(lo)
+            if progress is not None:
+                progress(done)
+    else:
+        with concurrent.futures.ThreadPoolExecutor(threads) as pool:
+            for done in pool.map(run, blocks):
+                if progress is not None:
+                    progress(done)
+    return x, kkt, steps

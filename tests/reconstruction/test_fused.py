@@ -1,0 +1,156 @@
+"""The fused CPU backend (`backend="fused"`): the same problem as the JAX kernels, solved
+in float64 from band segments — checked against the JAX path run in float64."""
+
+import jax
+import jax.random as jr
+import numpy as np
+import pytest
+
+import evhsi_jax as ev
+from evhsi_jax._base._numba import numba_available
+from evhsi_jax._reconstruct import ProblemConfig, _fused, _pipeline
+
+pytestmark = pytest.mark.skipif(not numba_available(), reason="numba is not available")
+
+SIZE = (6, 8)
+
+
+def _sam(a, b):
+    a = a.reshape(-1, a.shape[-1]).astype(np.float64)
+    b = b.reshape(-1, b.shape[-1]).astype(np.float64)
+    c = np.sum(a * b, 1) / (np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1))
+    return np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
+
+
+def _peaky_scene(rig, h, w, seed=0):
+    """Narrow reflectance peaks on a dark floor: the bound x ≥ 0 is active."""
+    rng = np.random.default_rng(seed)
+    wl = np.asarray(rig.wavelengths_nm)
+    centre = rng.uniform(wl[5], wl[-5], (h, w, 1))
+    cube = 0.9 * np.exp(-0.5 * ((wl - centre) / 6.0) ** 2)
+    return ev.Scene.from_cube(cube.astype(np.float32), wl)
+
+
+@pytest.fixture(scope="module")
+def captures():
+    """Two sweeps with a curved sweep and per-pixel thresholds; one ColorChecker, one
+    of narrow peaks."""
+    rig = ev.Rig(sweep_curvature_nm=3.0)
+    out = {}
+    for name, scene in (
+        ("colorchecker", ev.load_scene("colorchecker", SIZE)),
+        ("peaks", _peaky_scene(rig, *SIZE)),
+    ):
+        events, info = ev.simulate(
+            scene, rig, sweeps=2, key=jr.key(11), return_info=True
+        )
+        out[name] = (rig, events, info)
+    return out
+
+
+def _both(rig, events, info, cfg, **kw):
+    maps = dict(
+        threshold_on_map=info.threshold_on, threshold_off_map=info.threshold_off
+    )
+    fused, finfo = ev.reconstruct(
+        events, rig, config=cfg, backend="fused", return_info=True, **maps, **kw
+    )
+    with jax.enable_x64(True):
+        ref = ev.reconstruct(
+            events, rig.astype(np.float64), config=cfg, backend="jax", **maps, **kw
+        )
+    return fused, finfo, ref
+
+
+@pytest.mark.parametrize(
+    "scene,cfg",
+    [
+        ("colorchecker", ProblemConfig()),
+        ("peaks", ProblemConfig()),
+        ("colorchecker", ProblemConfig(int_target="linear", spec_kind="dct")),
+        ("peaks", ProblemConfig(int_target="peak", normalise=False)),
+    ],
+)
+def test_fused_equals_float64_jax(captures, scene, cfg):
+    rig, events, info = captures[scene]
+    fused, finfo, ref = _both(rig, events, info, cfg)
+    sam = _sam(fused, ref)
+    assert np.all(finfo.solved)
+    assert sam.max() < 0.05, sam.max()
+    assert np.abs(fused - ref).max() < 2e-3 * np.abs(ref).max()
+    assert np.nanmax(finfo.kkt) < 1e-6
+
+
+def test_active_set_steps_match(captures):
+    """The narrow peaks need active-set steps; the fused steps reach the same optimum
+    (also with a carried reference per pixel, as the per-sweep path passes)."""
+    rig, events, info = captures["peaks"]
+    h, w = SIZE
+    ref_us = np.where(np.arange(h * w).reshape(h, w) % 3 == 0, -4000.0, np.nan)
+    fused, _, ref = _both(rig, events, info, ProblemConfig(), reference_us=ref_us)
+    assert _sam(fused, ref).max() < 0.05
+    # Steps were needed: the unconstrained optimum has negative entries here.
+    lists = _fused_lists(rig, events)
+    prob = _fused.FusedProblem(
+        rig, _pipeline.channel_table(rig), ProblemConfig(),
+        _pipeline.solver_spec("auto"), w, np.asarray(rig.column_offsets(w)), 2,
+    )  # fmt: skip
+    counts, starts, t, s = lists
+    sel = np.flatnonzero(counts)
+    x, kkt, steps = _fused.solve_fused(
+        prob, sel, starts, counts, t, s, np.zeros(h * w),
+        info.threshold_on.reshape(-1), info.threshold_off.reshape(-1), threads=1,
+    )  # fmt: skip
+    assert steps.max() > 0 and np.all(steps >= 0)
+    assert np.all(x >= 0) and np.all(kkt < 1e-6)
+    x2, _, steps2 = _fused.solve_fused(
+        prob, sel, starts, counts, t, s, np.zeros(h * w),
+        info.threshold_on.reshape(-1), info.threshold_off.reshape(-1), threads=2,
+    )  # fmt: skip
+    np.testing.assert_array_equal(x, x2)  # threads split pixels, not sums
+    np.testing.assert_array_equal(steps, steps2)
+
+
+def _fused_lists(rig, events):
+    t0 = int(events.trigger_t_us[0])
+    screened, _, _ = _pipeline.screen_events(events, rig, t0, None, 2)
+    from evhsi_jax._reconstruct._pixels import pixel_lists
+
+    return pixel_lists(screened, t0)
+
+
+def test_failed_factorisation_falls_back(captures, monkeypatch):
+    """A pixel the kernel reports as failed (steps −1) is re-solved by the JAX path."""
+    rig, events, info = captures["colorchecker"]
+    maps = dict(
+        threshold_on_map=info.threshold_on, threshold_off_map=info.threshold_off
+    )
+    good = ev.reconstruct(events, rig, backend="fused", **maps)
+    real = _fused.solve_fused
+
+    def failing(*a, **k):
+        x, kkt, steps = real(*a, **k)
+        x[::5], steps[::5] = np.nan, -1
+        return x, kkt, steps
+
+    monkeypatch.setattr(_pipeline, "solve_fused", failing)
+    patched = ev.reconstruct(events, rig, backend="fused", **maps)
+    assert np.all(np.isfinite(patched))
+    assert _sam(patched, good).max() < 0.5  # float32 JAX against float64 fused
+
+
+def test_backend_choice_and_refusals(captures):
+    rig, events, _ = captures["colorchecker"]
+    with pytest.raises(ValueError, match="backend must be one of"):
+        ev.reconstruct(events, rig, backend="numba")
+    with pytest.raises(ValueError, match="threads must be"):
+        ev.reconstruct(events, rig, threads=0)
+    with pytest.raises(ValueError, match="solver 'apg'"):
+        ev.reconstruct(events, rig, backend="fused", solver="apg")
+    assert _fused.fused_supported(
+        _pipeline.solver_spec("auto"), ProblemConfig(), np.array([0.01, 0.0, 0.0])
+    ).startswith("a sensor noise model")
+    # auto on a CPU: the fused kernel, the same cube as asking for it.
+    np.testing.assert_array_equal(
+        ev.reconstruct(events, rig), ev.reconstruct(events, rig, backend="fused")
+    )
