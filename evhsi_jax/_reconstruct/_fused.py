@@ -81,9 +81,9 @@ class FusedProblem:
         big = np.abs(tab) > TRIM * peak
         any_ = big.any(axis=1)
         self.span_lo = np.where(any_, np.argmax(big, axis=1), m).astype(np.int64)
-        self.span_hi = np.where(
-            any_, m - np.argmax(big[:, ::-1], axis=1), 0
-        ).astype(np.int64)
+        self.span_hi = np.where(any_, m - np.argmax(big[:, ::-1], axis=1), 0).astype(
+            np.int64
+        )
         self.table = np.ascontiguousarray(tab)
         self.tabsum = tab.sum(axis=1)
         s = spectral_prior_matrix(m, cfg.m_start_frac, cfg.spec_kind)
