@@ -16,7 +16,10 @@ pixel per sweep and the worker's peak resident set (`getrusage` ru_maxrss). Scen
 construction is excluded from the timings. The issue's target: one full sweep in under
 60 s on 2 CPU cores. With `--profile` the worker also times the pieces of one sweep
 (log-intensity stage, event scan, device→host copy, event extraction, final sort;
-the two stages compiled separately, as the palette path runs them).
+the two stages compiled separately, as the palette path runs them). On a CPU with
+numba the scan is the compiled state machine (`evhsi_jax/_simulate/_scan_jit.py`),
+which emits the crossings itself (no copy, no extraction; `scan_kind` in the
+profile); elsewhere, or with `EVHSI_NO_NUMBA=1`, the XLA scan.
 
 usage: python experiments/bench_simulate.py [--size 720x1280] [--repeats 3]
        [--scenes colorchecker,random] [--chunk-columns 16] [--profile]
@@ -107,6 +110,9 @@ def profile_sweep(scene, rig, chunk_columns: int) -> dict:
     use_palette = pal.shape[0] < h
     pal_j = jnp.asarray(pal, jnp.float32)
     parts = dict(intensity=0.0, scan=0.0, to_host=0.0, extract=0.0)
+    from evhsi_jax._base._numba import use_numba
+
+    compiled = jax.default_backend() == "cpu" and use_numba()
     n_chunks = -(-w // chunk_columns)
     col_index = np.minimum(np.arange(n_chunks * chunk_columns), w - 1)
     col_index = col_index.reshape(n_chunks, chunk_columns)
@@ -128,6 +134,32 @@ def profile_sweep(scene, rig, chunk_columns: int) -> dict:
         )
         log_i.block_until_ready()
         t_mid = time.perf_counter()
+        if compiled:  # the CPU path: the numba state machine emits the crossings
+            from evhsi_jax._simulate._scan_jit import events_scan
+
+            li = np.asarray(log_i)
+            r0 = li[0].copy()
+            step, pix, t_ev, up_ev, n_ev = events_scan(
+                li, np.asarray((starts[ci] + np.arange(length)) * dt, np.float32),
+                thr_on[:, cols].T.reshape(-1).astype(np.float32),
+                thr_off[:, cols].T.reshape(-1).astype(np.float32),
+                np.float32(rig.refractory_us), r0,
+                np.full(r0.shape, -1e9, np.float32), np.zeros(r0.shape, bool),
+                rig.reset_mode == "release", np.zeros((1, 1), np.float32), False,
+                li.size,
+            )  # fmt: skip
+            step, pix, t_ev, up_ev = step[:n_ev], pix[:n_ev], t_ev[:n_ev], up_ev[:n_ev]
+            t1 = t2 = time.perf_counter()
+            ts.append(np.floor(t_ev).astype(np.int64))
+            ps.append(up_ev)
+            t3 = time.perf_counter()
+            if i == 0:
+                ts, ps = [], []
+                continue
+            parts["intensity"] += t_mid - t0
+            parts["scan"] += t1 - t_mid
+            parts["extract"] += t3 - t2
+            continue
         (fired, tc, up), _ = sim._trigger_scan_jit(
             rig,
             log_i,
@@ -161,6 +193,7 @@ def profile_sweep(scene, rig, chunk_columns: int) -> dict:
     stable_argsort_int(np.concatenate(ts))  # as the simulator does
     parts["sort"] = time.perf_counter() - t0
     parts["window_samples"] = int(length)
+    parts["scan_kind"] = "numba" if compiled else "xla"
     parts["chunks"] = int(n_chunks)
     return {k: round(v, 3) if isinstance(v, float) else v for k, v in parts.items()}
 

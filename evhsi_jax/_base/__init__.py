@@ -16,6 +16,7 @@ from ._metrics import sam_deg as sam_deg
 from ._metrics import sam_map_deg as sam_map_deg
 from ._metrics import ssim as ssim
 from ._numba import njit as njit
+from ._numba import numba_available as numba_available
 from ._numba import readonly as readonly
 from ._numba import use_numba as use_numba
 from ._reference_spectra import reference_spectra as reference_spectra

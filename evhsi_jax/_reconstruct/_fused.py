@@ -36,7 +36,7 @@ import os
 
 import numpy as np
 
-from .._base._numba import numba_available
+from .._base import numba_available
 from .._model import Rig
 from ._problem import INT_TARGETS, ProblemConfig, spectral_prior_matrix
 

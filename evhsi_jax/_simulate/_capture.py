@@ -25,7 +25,13 @@ from jax.sharding import PartitionSpec as P
 from jaxtyping import PRNGKeyArray
 from tqdm.auto import tqdm
 
-from .._base import band_integrate_matrix, check_fits, shard, stable_argsort_int
+from .._base import (
+    band_integrate_matrix,
+    check_fits,
+    shard,
+    stable_argsort_int,
+    use_numba,
+)
 from .._model import (
     TABLE_STEP_NM,
     BandTable,
@@ -356,6 +362,9 @@ def simulate(
         desc=f"simulate {h}x{w}x{sweeps}",
     )
     groups = shard.chunk_groups(n_chunks, mesh)  # one chunk each without a mesh
+    # On a CPU the state machine runs as a numba kernel (same crossings, bit for bit;
+    # `_scan_jit`); `EVHSI_NO_NUMBA=1` keeps the XLA scan.
+    compiled_scan = mesh is None and on_host and use_numba()
     group_states = [None] * len(groups)
     lowpass_hz = (
         jnp.asarray(fx.photoreceptor_hz, dtype) if fx.photoreceptor_hz > 0 else None
@@ -398,9 +407,16 @@ def simulate(
                     k = jr.fold_in(jr.fold_in(k_ref, s_idx), group[0])
                     shape = (length - 1, chunk_columns * h)
                     ref_noise = fx.threshold_noise * jr.normal(k, shape, dtype)
-                *out, group_states[gi] = _chunk_kernel(
-                    srig, tab_vals, fine.lo_nm, *ins[0], state, lowpass_hz, ref_noise
-                )
+                if compiled_scan:
+                    *out, group_states[gi] = _chunk_host_scan(
+                        srig, tab_vals, fine.lo_nm, *ins[0], state, lowpass_hz,
+                        ref_noise,
+                    )  # fmt: skip
+                else:
+                    *out, group_states[gi] = _chunk_kernel(
+                        srig, tab_vals, fine.lo_nm, *ins[0], state, lowpass_hz,
+                        ref_noise,
+                    )  # fmt: skip
                 outs = [out]
             else:
                 t_loc, offs, spectra, lab, con, coff = (np.stack(a) for a in zip(*ins))
@@ -411,12 +427,15 @@ def simulate(
                 )  # fmt: skip
                 outs = list(zip(*out))
             done = set()
-            for ci, (fired, tc, up) in zip(group, outs):
+            for ci, res in zip(group, outs):
                 if ci in done:  # a repeat padding the last group
                     continue
                 done.add(ci)
                 cols = col_index[ci]
-                step, pix, t_ev, up_ev = _fired_events(fired, tc, up, on_host)
+                if compiled_scan:  # the crossings themselves
+                    step, pix, t_ev, up_ev = res
+                else:
+                    step, pix, t_ev, up_ev = _fired_events(*res, on_host)
                 col_local, row = np.divmod(pix, h)
                 keep = col_local < w - ci * chunk_columns  # drop padded columns
                 col_local, row = col_local[keep], row[keep]
@@ -461,6 +480,56 @@ def simulate(
         return events
     info = SimulationInfo(thr_on, thr_off, n, length, n_noise, hot, speed_factor)
     return events, info
+
+
+def _chunk_host_scan(
+    rig, table_values, lo_nm, t_local, offsets, spectra, labels, thr_on, thr_off,
+    state, lowpass_hz=None, ref_noise=None,
+):  # fmt: skip
+    """:func:`_chunk_kernel` with the state machine in numba (`_scan_jit`): the log
+    intensity from JAX, then the scan on the host. Returns `(step, pixel, time,
+    is_on, state)` — the crossings, not dense arrays."""
+    from .._base import readonly
+    from ._scan_jit import events_scan
+
+    log_i = readonly(
+        np.asarray(
+            _log_intensity_jit(
+                rig, table_values, lo_nm, t_local, offsets, spectra, labels, lowpass_hz
+            )
+        ),
+        np.float32,
+    )
+    t = readonly(np.asarray(t_local), np.float32)
+    if state is None:
+        r = np.array(log_i[0], np.float32)
+        t_free = np.full(r.shape, _FAR_PAST_US, np.float32)
+        pending = np.zeros(r.shape, bool)
+    else:
+        r, t_free, pending = (np.array(a) for a in state)
+    noise = np.zeros((1, 1)) if ref_noise is None else np.asarray(ref_noise)
+    noise = readonly(noise, np.float32)
+    args = (
+        log_i, t, readonly(np.asarray(thr_on), np.float32),
+        readonly(np.asarray(thr_off), np.float32),
+        np.float32(rig.refractory_us),
+    )  # fmt: skip
+    nt, p = log_i.shape
+    span = float(t[-1] - t[0]) if nt > 1 else 0.0
+    cap = p * min(nt - 1, int(span / max(float(rig.refractory_us), 1e-3)) + 2)
+    keep = (r.copy(), t_free.copy(), pending.copy())
+    while True:
+        st = (keep[0].copy(), keep[1].copy(), keep[2].copy())
+        step, pix, tc, up, n = events_scan(
+            *args, *st, rig.reset_mode == "release", noise, ref_noise is not None,
+            max(cap, 1),
+        )  # fmt: skip
+        if n <= cap:
+            return step[:n], pix[:n], tc[:n], up[:n], st
+        cap = n
+
+
+_FAR_PAST_US = -1e9  # the state's "released long ago" (`_model._sensor._FAR_PAST`)
 
 
 def _fired_events(fired, tc, up, on_host: bool):

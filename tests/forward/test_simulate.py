@@ -560,5 +560,71 @@ def test_accelerator_event_extraction_matches_the_host_path():
     args = (jnp.asarray(fired), jnp.asarray(tc), jnp.asarray(up))
     for a, b in zip(_fired_events(*args, True), _fired_events(*args, False)):
         np.testing.assert_array_equal(a, b)
-    empty = _fired_events(jnp.zeros((4, 5), bool), args[1][:4, :5], args[2][:4, :5], False)
+    empty = _fired_events(
+        jnp.zeros((4, 5), bool), args[1][:4, :5], args[2][:4, :5], False
+    )
     assert all(a.size == 0 for a in empty)
+
+
+# --- the compiled (numba) state machine of the CPU path ------------------------------
+
+
+@pytest.mark.parametrize("reset_mode", ["release", "event"])
+@pytest.mark.parametrize("noisy", [False, True])
+def test_compiled_scan_matches_the_xla_scan(reset_mode, noisy):
+    """`_scan_jit.events_scan` crosses where `exact_events_scan` does: the same steps,
+    pixels and polarities, times equal to float32 rounding, the same final state."""
+    pytest.importorskip("numba")
+    from evhsi_jax._model._sensor import exact_events_scan, initial_state
+    from evhsi_jax._simulate._scan_jit import events_scan
+
+    rng = np.random.default_rng(5)
+    nt, p = 400, 37
+    t = np.cumsum(rng.uniform(5.0, 20.0, nt)).astype(np.float32)
+    walk = np.cumsum(rng.normal(0, 0.08, (nt, p)), axis=0)
+    log_i = (walk + np.sin(t[:, None] / 300.0)).astype(np.float32)
+    on = rng.uniform(0.15, 0.3, p).astype(np.float32)
+    off = rng.uniform(0.15, 0.3, p).astype(np.float32)
+    noise = (0.02 * rng.normal(size=(nt - 1, p))).astype(np.float32)
+    eta = np.float32(30.0)
+    (fired, tc, up), state = exact_events_scan(
+        jnp.asarray(log_i), jnp.asarray(t), jnp.asarray(on), jnp.asarray(off),
+        jnp.asarray(eta), initial_state(jnp.asarray(log_i[0])), reset_mode=reset_mode,
+        reference_noise=jnp.asarray(noise) if noisy else None,
+    )  # fmt: skip
+    r, t_free, pend = (np.array(a) for a in initial_state(jnp.asarray(log_i[0])))
+    step, pix, t_ev, up_ev, n = events_scan(
+        log_i, t, on, off, eta, r, t_free, pend, reset_mode == "release",
+        noise if noisy else np.zeros((1, 1), np.float32), noisy, nt * p,
+    )  # fmt: skip
+    s_ref, p_ref = np.nonzero(np.asarray(fired))
+    assert n == s_ref.size > 100
+    np.testing.assert_array_equal(step[:n], s_ref)
+    np.testing.assert_array_equal(pix[:n], p_ref)
+    np.testing.assert_array_equal(up_ev[:n], np.asarray(up)[s_ref, p_ref])
+    np.testing.assert_allclose(t_ev[:n], np.asarray(tc)[s_ref, p_ref], rtol=1e-6)
+    np.testing.assert_allclose(r, np.asarray(state[0]), atol=1e-5)
+    np.testing.assert_array_equal(pend, np.asarray(state[2]))
+
+
+def test_simulate_compiled_scan_equals_xla_path():
+    """`simulate` on a CPU (numba scan) and with `EVHSI_NO_NUMBA` (XLA scan): the same
+    events, timestamps within 1 µs (float32 rounding at a µs boundary), with the
+    realistic sensor's per-crossing noise and photoreceptor low-pass on."""
+    pytest.importorskip("numba")
+    from evhsi_jax._base._numba import use_backend
+
+    rig = Rig(sensor="realistic")
+    scene = load_scene("colorchecker", (6, 10))
+    out = {}
+    for backend in ("numpy", "numba"):
+        with use_backend(backend):
+            out[backend] = simulate(scene, rig, sweeps=2, key=jr.key(4))
+    a, b = out["numpy"], out["numba"]
+    assert len(a) == len(b) > 1000
+    ka = np.lexsort((a.t_us, a.p, a.x, a.y))
+    kb = np.lexsort((b.t_us, b.p, b.x, b.y))
+    for k in ("x", "y", "p"):
+        np.testing.assert_array_equal(getattr(a, k)[ka], getattr(b, k)[kb])
+    dt = np.abs(a.t_us[ka].astype(np.int64) - b.t_us[kb].astype(np.int64))
+    assert dt.max() <= 1 and np.mean(dt > 0) < 1e-3
