@@ -839,8 +839,8 @@ def build_parser() -> argparse.ArgumentParser:
         choices=["auto", "jax", "fused"],
         help="auto (default): the fused CPU kernel (each pixel's system formed from "
         "band segments and solved in float64 on every core) where it applies — "
-        "ideal-sensor calibration, active-set solver, solve on a CPU — else the JAX "
-        "kernels; jax or fused to choose (fused refuses what it cannot run)",
+        "active-set solver, solve on a CPU — else the JAX kernels; jax or fused to "
+        "choose (fused refuses what it cannot run)",
     )
     p.add_argument(
         "--threads",

@@ -333,6 +333,19 @@ class Rig(eqx.Module):
     spectra_json: tuple = eqx.field(static=True)
 
     def __init__(self, **overrides):
+        preset = overrides.pop("sensor", None)
+        if preset is not None:  # as the JSON key: explicit keys override the preset
+            if preset not in SENSOR_PRESETS:
+                raise ValueError(
+                    f"rig key 'sensor' must be one of {sorted(SENSOR_PRESETS)}, got "
+                    f"{preset!r}"
+                )
+            overrides = {**SENSOR_PRESETS[preset], **overrides}
+        unknown = sorted(set(overrides) - set(DEFAULTS))
+        if unknown:  # a typo must not be silently ignored
+            raise TypeError(
+                f"unknown rig key(s) {unknown}; known keys: {sorted(DEFAULTS)}"
+            )
         cfg = _validated({**DEFAULTS, **overrides})
         self.grid = SpectralGrid(
             cfg["channels"],

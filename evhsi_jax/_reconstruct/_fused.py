@@ -21,10 +21,13 @@ cond(Q) up to ~1e8. Entries of the band table below `TRIM` of its peak (1e-10: b
 float32's own resolution of a row) are treated as zero; that is the only difference to
 the dense problem of :func:`._problem.pixel_system` in float64 (tests compare the two).
 
-Scope: the ideal-sensor problem (no noise model), the active-set solver and the
-linear table lookup — what `reconstruct` uses by default for a calibration without
-sensor noise. Everything else (noise-aware rows, the photoreceptor model, other
-solvers, cubic lookup, gradients, accelerators) stays on the JAX path
+Scope: the whole per-pixel problem `reconstruct` solves with the active-set solver
+and the linear table lookup — the ideal sensor's, and with a calibrated noise model
+the noise-aware one: event times moved back by the photoreceptor's lag, rows weighted
+by their noise, the dark-channel prior, the photoreceptor model relinearised at the
+answer (Gauss–Newton passes, ≤ 4 sweeps; its filter runs as $F = S V$ with a running
+scale so a time step costs the band's span) and the robust reweighting. Other
+solvers, the cubic lookup, gradients and accelerators stay on the JAX path
 (:func:`fused_supported`). Threads: pixels are handed out in blocks to `threads`
 workers; the kernel releases the GIL.
 """
@@ -48,6 +51,12 @@ TRIM = 1e-10
 BLOCK_PIXELS = 512
 
 
+def jit_par_size() -> int:
+    from ._fused_jit import N_PAR
+
+    return N_PAR
+
+
 def usable_cores() -> int:
     try:
         return max(1, len(os.sched_getaffinity(0)))
@@ -55,16 +64,16 @@ def usable_cores() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def fused_supported(spec, cfg: ProblemConfig, noise) -> str | None:
+def fused_supported(spec, cfg: ProblemConfig, noise, sweeps: int = 1) -> str | None:
     """Why the fused path cannot run this reconstruction (None: it can)."""
     if not numba_available():
         return "numba is not available"
     if spec.name != "active-set":
         return f"solver {spec.name!r} (the fused path is the active-set solver)"
-    if noise is not None:
-        return "a sensor noise model (noise-aware rows run on the JAX path)"
     if cfg.lookup_order != 1:
         return "lookup_order 3"
+    if not cfg.nonneg:
+        return "nonneg=False (the fused path solves the box QP)"
     return None
 
 
@@ -72,7 +81,7 @@ class FusedProblem:
     """The rig- and configuration-dependent inputs of the kernel, built once."""
 
     def __init__(self, rig: Rig, table, cfg: ProblemConfig, spec, width: int,
-                 column_offsets_us: np.ndarray, sweeps: int):  # fmt: skip
+                 column_offsets_us: np.ndarray, sweeps: int, noise=None):  # fmt: skip
         from ._problem import lit_interval_us
 
         tab = np.asarray(table.values, np.float64)
@@ -96,7 +105,7 @@ class FusedProblem:
         f = lambda v: float(np.asarray(v))  # noqa: E731
         speed = f(rig.band_speed_nm_per_us)
         arrive, leave = (f(v) for v in lit_interval_us(rig, 0.0))
-        par = np.zeros(19)
+        par = np.zeros(jit_par_size())
         par[:19] = [
             f(rig.baseline_level), f(rig.refractory_us), f(rig.period_us), speed,
             f(rig.sweep_start_nm), f(rig.sweep_curvature_nm),
@@ -106,17 +115,28 @@ class FusedProblem:
             cfg.ridge, cfg.peak_height, spec.tol, float(np.trace(s)),
             float(table.lo_nm), 1.0 / float(table.step_nm),
         ]  # fmt: skip
+        # The noise model [σ_C, σ_t, d_w] and the reweighting's settings.
+        nz = np.zeros(3) if noise is None else np.asarray(noise, np.float64)
+        par[19:28] = [
+            nz[0], nz[1], nz[2], cfg.noise_floor, cfg.alpha_dark, cfg.robust_c,
+            cfg.robust_reject, f(rig.baseline_rel), f(rig.log_eps),
+        ]  # fmt: skip
         self.par = par
         self.ipar = np.array(
             [sweeps, cfg.int_points, INT_TARGETS.index(cfg.int_target),
-             int(cfg.normalise), int(rig.reset_mode == "release"), spec.iters],
+             int(cfg.normalise), int(rig.reset_mode == "release"), spec.iters,
+             int(noise is not None), cfg.robust_steps, cfg.lowpass_passes,
+             int(rig.samples_per_sweep)],
             np.int64,
         )  # fmt: skip
+        # Dark-channel prior: per neighbour difference, ½(dim_k + dim_k+1), dim the
+        # peak light over the channel's light − 1 (capped), as in pixel_system.
+        light = tab.max(axis=0)
+        dim = np.minimum(light.max() / np.maximum(light, 1e-12) - 1.0, 1e4)
+        self.dark = np.ascontiguousarray(0.5 * (dim[1:] + dim[:-1]))
         self.width = int(width)
         self.col_off = np.ascontiguousarray(column_offsets_us, np.float64)
         self.channels = m
-        if not cfg.nonneg:
-            raise ValueError("the fused path solves the box QP (nonneg=True)")
 
 
 def solve_fused(
@@ -148,7 +168,8 @@ def solve_fused(
         np.ascontiguousarray(s_sorted, np.int8), np.ascontiguousarray(lead, np.float64),
         prob.col_off, np.int64(prob.width), np.ascontiguousarray(thr_on, np.float64),
         np.ascontiguousarray(thr_off, np.float64), prob.table, prob.tabsum,
-        prob.span_lo, prob.span_hi, prob.spec, prob.spec_first, prob.par, prob.ipar,
+        prob.span_lo, prob.span_hi, prob.spec, prob.spec_first, prob.dark, prob.par,
+        prob.ipar,
     )  # fmt: skip
     sel = np.ascontiguousarray(sel, np.int64)
 

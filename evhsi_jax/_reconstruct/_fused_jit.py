@@ -21,7 +21,11 @@ from .._base import njit
 P_BASE, P_ETA, P_PERIOD, P_SPEED, P_START, P_CURV, P_MID, P_HALF = range(8)
 P_ARRIVE, P_LEAVE, P_TAU0, P_AINT, P_ASPEC, P_RIDGE, P_PEAK, P_TOL = range(8, 16)
 P_SPEC_TRACE, P_TAB_LO, P_INV_STEP = range(16, 19)
-I_SWEEPS, I_POINTS, I_TARGET, I_NORM, I_RELEASE, I_ITERS = range(6)
+P_SIG_C, P_SIG_T, P_DW, P_FLOOR, P_ADARK, P_RC, P_REJECT = range(19, 26)
+P_BASE_REL, P_LOG_EPS = range(26, 28)
+N_PAR = 28
+I_SWEEPS, I_POINTS, I_TARGET, I_NORM, I_RELEASE, I_ITERS, I_NOISE, I_ROBUST = range(8)
+I_LOWPASS, I_SAMPLES = range(8, 10)
 
 
 @njit(inline=True)
@@ -192,17 +196,231 @@ def _gradient(qm, first, qv, x, g):
         g[i] += gi
 
 
+@njit(inline=True)
+@no_type_check
+def _acc_stored(qm, qv, first, r, c, lo, hi, s2):
+    """Q += s2 r rᵀ (lower triangle), q += s2 r c over [lo, hi) (the row is kept)."""
+    for i in range(lo, hi):
+        ri = s2 * r[i]
+        qi = qm[i]
+        for j in range(_u(lo), _u(i + 1)):
+            qi[j] += ri * r[j]
+        qv[i] += ri * c
+        if lo < first[i]:
+            first[i] = lo
+
+
+@njit(inline=True)
+@no_type_check
+def _add_priors(qm, first, spec, spec_first, spec_w, ridge_rel, spec_trace):
+    """The spectral prior spec_w·S (inside its envelope) and the ridge
+    ridge_rel·(tr Q_data + spec_w tr S)/M, as :func:`._problem._system`."""
+    m = qm.shape[0]
+    trace = 0.0
+    for i in range(m):
+        trace += qm[i, i]
+    ridge = ridge_rel * ((trace + spec_w * spec_trace) / m + 1e-30)
+    for i in range(m):
+        qi = qm[i]
+        si = spec[i]
+        for j in range(_u(spec_first[i]), _u(i + 1)):
+            qi[j] += spec_w * si[j]
+        qi[i] += ridge
+        if spec_first[i] < first[i]:
+            first[i] = spec_first[i]
+
+
+@njit(inline=True)
+@no_type_check
+def _box_qp(qm, qv, first, free, lf, inv, x, p, gr, tol, max_iters):
+    """min ½xᵀQx + qᵀx, x ≥ 0: the unconstrained minimiser, then the primal
+    active-set steps of :func:`._solvers.active_set_step` where a bound is violated.
+    Returns the steps taken, −1 when a factorisation failed."""
+    m = qv.size
+    for i in range(m):
+        free[i] = True
+    if not _factor(qm, first, free, lf, inv):
+        return -1
+    _solve(lf, inv, first, free, qv, x)
+    neg = False
+    for i in range(m):
+        if x[i] < 0.0:
+            neg = True
+        if x[i] <= 0.0:
+            x[i] = 0.0
+            free[i] = False
+    done = not neg
+    qmax = 0.0
+    for i in range(m):
+        qmax = max(qmax, abs(qm[i, i]))
+    steps = 0
+    while not done and steps < max_iters:
+        steps += 1
+        if not _factor(qm, first, free, lf, inv):
+            return -1
+        _solve(lf, inv, first, free, qv, p)
+        j_block = -1
+        best = np.inf
+        for i in range(m):
+            if free[i] and p[i] < 0.0:
+                ratio = x[i] / (x[i] - p[i])
+                if ratio < best:
+                    best = ratio
+                    j_block = i
+        if j_block >= 0:  # blocked: move to the first bound, fix it
+            alpha = min(max(best, 0.0), 1.0)
+            for i in range(m):
+                x[i] = max(x[i] + alpha * (p[i] - x[i]), 0.0)
+            x[j_block] = 0.0
+            free[j_block] = False
+            continue
+        _gradient(qm, first, qv, p, gr)
+        pmax = 1e-30
+        for i in range(m):
+            pmax = max(pmax, abs(p[i]))
+        lim = -tol * qmax * pmax
+        j_rel = -1
+        best = np.inf
+        for i in range(m):
+            if not free[i] and gr[i] < lim and gr[i] < best:
+                best = gr[i]
+                j_rel = i
+        for i in range(m):
+            x[i] = p[i]
+        if j_rel >= 0:
+            free[j_rel] = True
+        else:
+            done = True
+    return steps
+
+
+@njit(inline=True)
+@no_type_check
+def _lowpass_rows(
+    x0, tr, step, w_log, k, phase, off, par, ipar, table, span_lo, span_hi, vv, fq,
+    qpos, qi0, order, evr, evc, evlo, evhi,
+):  # fmt: skip
+    """Event rows of the photoreceptor model linearised at `x0`
+    (:func:`._problem._lowpass_rows`): the filtered $[\\log L, a/L]$ on the rig's
+    time grid, differenced between each event's time `tr[i]` and its reference
+    ($τ_{i-1} + η$, the recorded times), weighted by `w_log`, into `evr`/`evc`.
+
+    The filter $F_j = α_j F_{j-1} + (1-α_j) s_j$ runs as $F = S V$ with a running
+    scale $S = \\prod α$ (renormalised before it underflows), so a step costs the
+    band's span, not M + 1; F is formed only at the grid points the queries need."""
+    m = x0.size
+    n = ipar[I_SAMPLES]
+    period = par[P_PERIOD]
+    dt = period / n
+    g_n = ipar[I_SWEEPS] * n + 1
+    ntab = table.shape[0]
+    d_w = max(par[P_DW], 1e-6)
+    eta = par[P_ETA]
+    # Queries: 2i at the event, 2i + 1 at its reference; positions on the grid.
+    nq = 2 * k
+    for i in range(k):
+        t_ref = 0.0 if i == 0 else tr[i - 1] + eta
+        for h, t in ((0, tr[i]), (1, t_ref)):
+            pos = min(max((t + phase) / dt, 0.0), g_n - 1.0)
+            qpos[2 * i + h] = pos
+    for q in range(nq):
+        qi0[q] = min(np.int64(math.floor(qpos[q])), g_n - 2)
+        fq[q, :] = 0.0
+    order[:nq] = np.argsort(qpos[:nq], kind="mergesort")
+    vv[:] = 0.0
+    scale = 1.0
+    pa = 0
+    pb = 0
+    for j in range(g_n):
+        local = j * dt
+        local = local - period * math.floor(local / period)
+        b, f = _band_at(local - phase, phase, off, par, ntab)
+        lo = 0
+        hi = 0
+        inten = par[P_BASE_REL]
+        if b >= 0:
+            lo = min(span_lo[b], span_lo[b + 1])
+            hi = max(span_hi[b], span_hi[b + 1])
+            t0 = table[b]
+            t1 = table[b + 1]
+            for c in range(lo, hi):
+                inten += (t0[c] * (1.0 - f) + t1[c] * f) * x0[c]
+        inten = max(inten, 0.0)
+        lev = inten + par[P_LOG_EPS]
+        alpha = 0.0 if j == 0 else math.exp(-dt * inten / d_w)
+        if alpha < 1e-200:  # F forgets its past (below 1e-200 of it): restart
+            for c in range(m + 1):
+                vv[c] = 0.0
+            scale = 1.0
+            wgt = 1.0 - alpha
+        else:
+            if scale * alpha < 1e-200:  # renormalise V before S underflows
+                for c in range(m + 1):
+                    vv[c] *= scale
+                scale = 1.0
+            scale *= alpha
+            wgt = (1.0 - alpha) / scale
+        vv[0] += wgt * math.log(lev)
+        if b >= 0:
+            for c in range(lo, hi):
+                vv[c + 1] += wgt * (t0[c] * (1.0 - f) + t1[c] * f) / lev
+        # F_j completes the queries on [j - 1, j] and starts those on [j, j + 1].
+        while pb < nq and qi0[order[pb]] + 1 == j:
+            qq = order[pb]
+            wq = scale * (qpos[qq] - qi0[qq])
+            row = fq[qq]
+            for c in range(m + 1):
+                row[c] += wq * vv[c]
+            pb += 1
+        while pa < nq and qi0[order[pa]] == j:
+            qq = order[pa]
+            wq = scale * (1.0 - (qpos[qq] - qi0[qq]))
+            row = fq[qq]
+            for c in range(m + 1):
+                row[c] += wq * vv[c]
+            pa += 1
+    for i in range(k):
+        de = fq[2 * i]
+        dr = fq[2 * i + 1]
+        ri = evr[i]
+        c_row = de[0] - dr[0] - step[i]
+        lo = m
+        hi = 0
+        big = 0.0
+        for c in range(m):
+            v = de[c + 1] - dr[c + 1]
+            ri[c] = v
+            c_row -= v * x0[c]
+            big = max(big, abs(v))
+        for c in range(m):
+            if abs(ri[c]) > 1e-14 * big:
+                lo = min(lo, c)
+                hi = c + 1
+        w = w_log[i]
+        for c in range(m):
+            ri[c] = ri[c] * w if lo <= c < hi else 0.0
+        evc[i] = c_row * w
+        evlo[i] = min(lo, hi)
+        evhi[i] = hi
+
+
 @njit
 @no_type_check
 def solve_pixels(
     sel, starts, use, t_sorted, s_sorted, lead, col_off, width, thr_on, thr_off,
-    table, tabsum, span_lo, span_hi, spec, spec_first, par, ipar, out_x, out_kkt,
-    out_steps,
+    table, tabsum, span_lo, span_hi, spec, spec_first, dark, par, ipar, out_x,
+    out_kkt, out_steps,
 ):  # fmt: skip
     """Assemble and solve the pixels `sel` (flat indices); their events are
     `t_sorted[starts[p] : starts[p] + use[p]]` (µs from the recording start, time
     order) with polarities `s_sorted`. Writes each pixel's x, KKT residual and
-    active-set steps (-1: a factorisation failed, x is NaN)."""
+    active-set steps (-1: a factorisation failed, x is NaN).
+
+    With the noise model (`ipar[I_NOISE]`) the event times are moved back by the
+    photoreceptor's lag, the event rows weighted by their noise, the dark-channel
+    prior added (`dark`: its per-difference weight before the noise share) and the
+    robust reweighting run `ipar[I_ROBUST]` times — :func:`._problem.pixel_system`
+    with `noise` and the reweighting of :func:`._pipeline._solve_chunk`."""
     m = table.shape[1]
     ntab = table.shape[0]
     base = par[P_BASE]
@@ -215,8 +433,11 @@ def solve_pixels(
     norm = ipar[I_NORM] != 0
     release = ipar[I_RELEASE] != 0
     max_iters = ipar[I_ITERS]
+    noisy_model = ipar[I_NOISE] != 0
+    robust_steps = ipar[I_ROBUST] if noisy_model else 0
     peak = target == 1 or target == 3
     flat = target >= 2
+    tol = par[P_TOL]
     kmax = 1
     for r in range(sel.size):
         kmax = max(kmax, use[sel[r]])
@@ -227,7 +448,16 @@ def solve_pixels(
     sweep_of = np.empty(kmax, np.int64)
     drift = np.empty(kmax)
     i_hat = np.empty(kmax)
+    sigma = np.empty(kmax)
+    absz = np.empty(kmax)
+    zz = np.empty(kmax)
+    evr = np.zeros((kmax, m))
+    evc = np.zeros(kmax)
+    evlo = np.zeros(kmax, np.int64)
+    evhi = np.zeros(kmax, np.int64)
     qm = np.zeros((m, m))
+    qd = np.zeros((m, m))
+    qvd = np.zeros(m)
     lf = np.zeros((m, m))
     inv = np.zeros(m)
     qv = np.zeros(m)
@@ -238,6 +468,18 @@ def solve_pixels(
     p = np.zeros(m)
     gr = np.zeros(m)
     lohi = np.zeros(2, np.int64)
+    d_w = par[P_DW]
+    lowpass = noisy_model and d_w > 0.0 and sweeps <= 4 and ipar[I_LOWPASS] > 0
+    lp_passes = ipar[I_LOWPASS] if lowpass else 0
+    traw = np.empty(kmax)
+    wn = np.empty(kmax)
+    nbuf = 2 * kmax if lowpass else 1
+    vv = np.zeros(m + 1)
+    fq = np.zeros((nbuf, m + 1))
+    qpos = np.zeros(nbuf)
+    qi0 = np.zeros(nbuf, np.int64)
+    order = np.zeros(nbuf, np.int64)
+    keep_drift = robust_steps > 0 or lowpass
     for r in range(sel.size):
         pix = sel[r]
         k = use[pix]
@@ -252,17 +494,31 @@ def solve_pixels(
             first[i] = i
         lohi[0] = m
         lohi[1] = 0
-        # Events: steps, sweeps, drift on monotone flanks, level estimates.
-        prev_s = 0.0
+        # Events: steps and sweeps (from the recorded times); with a photoreceptor
+        # lag, each time moved back by d_w / Î (Î from the steps alone), kept ordered.
         level = 0.0
-        peak_i = base
+        t_max = -np.inf
         for i in range(k):
             tt[i] = t_sorted[s0 + i] + d
+            traw[i] = tt[i]
             sg = 1.0 if s_sorted[s0 + i] > 0 else -1.0
             sgn[i] = sg
             thr[i] = t_on if sg > 0 else t_off
             step[i] = sg * thr[i]
             sweep_of[i] = np.int64(math.floor((tt[i] + phase) / period))
+            if noisy_model:
+                if i == 0 or sweep_of[i] != sweep_of[i - 1]:
+                    level = 0.0
+                level += step[i]
+                delay = min(par[P_DW] * math.exp(-(log_base + level)), 5000.0)
+                t_max = max(t_max, tt[i] - delay)
+                tt[i] = t_max
+        # Drift on monotone flanks and the level estimates (from the used times).
+        prev_s = 0.0
+        level = 0.0
+        peak_i = base
+        for i in range(k):
+            sg = sgn[i]
             new = i == 0 or sweep_of[i] != sweep_of[i - 1]
             t_ref = 0.0 if i == 0 else tt[i - 1] + eta
             gap = max(tt[i] - t_ref, 1.0)
@@ -277,16 +533,33 @@ def solve_pixels(
             peak_i = max(peak_i, i_hat[i])
             prev_s = sg
         s_hat = max(peak_i - base, 1e-3 * base)
-        # Event rows: [a(τ) - e^{σC} a(ρ); c'(1 - e^{σC})] / Î.
+        # Event rows [a(τ) - e^{σC} a(ρ); c'(1 - e^{σC})] / Î (× noise weight), kept.
+        share = 0.0
         for i in range(k):
             ratio = math.exp(step[i])
             w = 1.0 / i_hat[i] if norm else 1.0
             t_ref = 0.0 if i == 0 else tt[i - 1] + eta
+            if noisy_model:
+                gap = max(tt[i] - t_ref, 1.0)
+                slope = abs(step[i]) / gap
+                ideal = par[P_FLOOR] ** 2 + slope * slope / 6.0
+                var = par[P_SIG_C] ** 2 + 2.0 * par[P_SIG_T] ** 2 * slope * slope
+                wn[i] = math.sqrt(ideal / (ideal + var))
+                w *= wn[i]
+                sigma[i] = math.sqrt(ideal)
+                share += var / (ideal + var)
             b0, f0 = _band_at(tt[i], phase, off, par, ntab)
             b1, f1 = _band_at(t_ref, phase, off, par, ntab)
-            _add_band(row, w, b0, f0, table, span_lo, span_hi, lohi)
-            _add_band(row, -w * ratio, b1, f1, table, span_lo, span_hi, lohi)
-            _accumulate(row, w * base * (1.0 - ratio), lohi, qm, qv, first)
+            ri = evr[i]
+            lohi[0] = m
+            lohi[1] = 0
+            _add_band(ri, w, b0, f0, table, span_lo, span_hi, lohi)
+            _add_band(ri, -w * ratio, b1, f1, table, span_lo, span_hi, lohi)
+            evc[i] = w * base * (1.0 - ratio)
+            evlo[i] = min(lohi[0], lohi[1])
+            evhi[i] = lohi[1]
+        lohi[0] = m
+        lohi[1] = 0
         # Anti-drift rows over each sweep's lit interval.
         arrive = par[P_ARRIVE] - off
         leave = par[P_LEAVE] - off
@@ -352,75 +625,102 @@ def solve_pixels(
                 else:
                     lohi[0] = m
                     lohi[1] = 0
-        # Priors: α_spec/ŝ² S (its envelope) and the ridge.
+        # Dark channels tied to their neighbours, by the noise's share of the rows.
+        if noisy_model and par[P_ADARK] > 0.0:
+            nshare = share / max(k, 1)
+            for c in range(m - 1):
+                wd2 = par[P_ADARK] * nshare * dark[c] / (s_hat * s_hat)
+                qm[c, c] += wd2
+                qm[c + 1, c + 1] += wd2
+                qm[c + 1, c] -= wd2
+                if c < first[c + 1]:
+                    first[c + 1] = c
+        if keep_drift:  # the drift part, for re-weighting or replacing the events
+            qd[:, :] = 0.0  # (read later over the final, wider envelope)
+            for i in range(m):
+                qvd[i] = qv[i]
+                for j in range(first[i], i + 1):
+                    qd[i, j] = qm[i, j]
+        for i in range(k):
+            if evhi[i] > evlo[i]:
+                _acc_stored(qm, qv, first, evr[i], evc[i], evlo[i], evhi[i], 1.0)
         spec_w = par[P_ASPEC] / (s_hat * s_hat) if norm else par[P_ASPEC]
-        trace = 0.0
+        # Priors need the final envelope: the spectral prior's rows are added to it.
         for i in range(m):
-            trace += qm[i, i]
-        ridge = par[P_RIDGE] * ((trace + spec_w * par[P_SPEC_TRACE]) / m + 1e-30)
-        for i in range(m):
-            for j in range(spec_first[i], i + 1):
-                qm[i, j] += spec_w * spec[i, j]
-            qm[i, i] += ridge
             if spec_first[i] < first[i]:
                 first[i] = spec_first[i]
-        # Box QP: the unconstrained minimiser, then active-set steps if needed.
-        for i in range(m):
-            free[i] = True
-        steps = 0
-        ok = _factor(qm, first, free, lf, inv)
-        if ok:
-            _solve(lf, inv, first, free, qv, x)
-            neg = False
+        _add_priors(qm, first, spec, spec_first, spec_w, par[P_RIDGE],
+                    par[P_SPEC_TRACE])  # fmt: skip
+        steps = _box_qp(qm, qv, first, free, lf, inv, x, p, gr, tol, max_iters)
+        # The photoreceptor model linearised at the answer replaces the delay-shifted
+        # event rows (Gauss–Newton passes).
+        for _ in range(lp_passes):
+            if steps < 0:
+                break
+            for i in range(k):
+                ri = evr[i]
+                for j in range(evlo[i], evhi[i]):
+                    ri[j] = 0.0
+            _lowpass_rows(
+                x, traw, step, wn, k, phase, off, par, ipar, table, span_lo, span_hi,
+                vv, fq, qpos, qi0, order, evr, evc, evlo, evhi,
+            )  # fmt: skip
             for i in range(m):
-                if x[i] < 0.0:
-                    neg = True
-                if x[i] <= 0.0:
-                    x[i] = 0.0
-                    free[i] = False
-            done = not neg
-            qmax = 0.0
+                qv[i] = qvd[i]
+                qi = qm[i]
+                di = qd[i]
+                for j in range(first[i], i + 1):
+                    qi[j] = di[j]
+            for i in range(k):
+                if evhi[i] > evlo[i]:
+                    _acc_stored(qm, qv, first, evr[i], evc[i], evlo[i], evhi[i], 1.0)
+            _add_priors(qm, first, spec, spec_first, spec_w, par[P_RIDGE],
+                        par[P_SPEC_TRACE])  # fmt: skip
+            steps = _box_qp(qm, qv, first, free, lf, inv, x, p, gr, tol, max_iters)
+        # Robust reweighting: rows far outside their noise count linearly (Huber)
+        # or not at all.
+        for _ in range(robust_steps):
+            if steps < 0:
+                break
+            for i in range(k):
+                ri = evr[i]
+                zi = evc[i]
+                for j in range(evlo[i], evhi[i]):
+                    zi += ri[j] * x[j]
+                zz[i] = zi / sigma[i]
+                absz[i] = abs(zz[i])
+            med = np.median(absz[:k]) if k > 0 else 0.0
+            scale = max(1.4826 * med, 1.0)
+            any_big = False
+            for i in range(k):
+                a = absz[i] / scale
+                u = 1.0
+                if a > par[P_RC]:
+                    any_big = True
+                    u = math.sqrt(par[P_RC] / a)
+                if a > par[P_REJECT]:
+                    u = 0.0
+                zz[i] = u
+            if not any_big:
+                break
             for i in range(m):
-                qmax = max(qmax, abs(qm[i, i]))
-            while not done and steps < max_iters:
-                steps += 1
-                if not _factor(qm, first, free, lf, inv):
-                    ok = False
-                    break
-                _solve(lf, inv, first, free, qv, p)
-                j_block = -1
-                best = np.inf
-                for i in range(m):
-                    if free[i] and p[i] < 0.0:
-                        ratio = x[i] / (x[i] - p[i])
-                        if ratio < best:
-                            best = ratio
-                            j_block = i
-                if j_block >= 0:  # blocked: move to the first bound, fix it
-                    alpha = min(max(best, 0.0), 1.0)
-                    for i in range(m):
-                        x[i] = max(x[i] + alpha * (p[i] - x[i]), 0.0)
-                    x[j_block] = 0.0
-                    free[j_block] = False
-                    continue
-                _gradient(qm, first, qv, p, gr)
-                pmax = 1e-30
-                for i in range(m):
-                    pmax = max(pmax, abs(p[i]))
-                lim = -par[P_TOL] * qmax * pmax
-                j_rel = -1
-                best = np.inf
-                for i in range(m):
-                    if not free[i] and gr[i] < lim and gr[i] < best:
-                        best = gr[i]
-                        j_rel = i
-                for i in range(m):
-                    x[i] = p[i]
-                if j_rel >= 0:
-                    free[j_rel] = True
-                else:
-                    done = True
-        if not ok:
+                qv[i] = qvd[i]
+                qi = qm[i]
+                di = qd[i]
+                for j in range(first[i], i + 1):
+                    qi[j] = di[j]
+            for i in range(k):
+                if evhi[i] > evlo[i] and zz[i] > 0.0:
+                    _acc_stored(qm, qv, first, evr[i], evc[i], evlo[i], evhi[i],
+                                zz[i] * zz[i])  # fmt: skip
+            _add_priors(qm, first, spec, spec_first, spec_w, par[P_RIDGE],
+                        par[P_SPEC_TRACE])  # fmt: skip
+            steps = _box_qp(qm, qv, first, free, lf, inv, x, p, gr, tol, max_iters)
+        for i in range(k):  # clear the kept event rows for the next pixel
+            ri = evr[i]
+            for j in range(evlo[i], evhi[i]):
+                ri[j] = 0.0
+        if steps < 0:
             for i in range(m):
                 out_x[r, i] = np.nan
             out_kkt[r] = np.nan

@@ -92,10 +92,14 @@ def reconstruct_pixels(
     n = t_us.shape[0]
     dtype = table.values.dtype
     thr_on = (
-        jnp.full((n,), rig.threshold_on, dtype) if threshold_on is None else threshold_on
+        jnp.full((n,), rig.threshold_on, dtype)
+        if threshold_on is None
+        else threshold_on
     )
     thr_off = (
-        jnp.full((n,), rig.threshold_off, dtype) if threshold_off is None else threshold_off
+        jnp.full((n,), rig.threshold_off, dtype)
+        if threshold_off is None
+        else threshold_off
     )
 
     def one(px):

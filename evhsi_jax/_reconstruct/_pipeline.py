@@ -415,7 +415,8 @@ def reconstruct(
       refers to the intensity at that time (under the spectrum being solved for)
       instead of the baseline c' at `t_start_us`: what a recording cut out of a longer
       one needs (:func:`evhsi_jax.reconstruct_sweeps`). Default: all at `t_start_us`.
-    - `chunk_pixels`: pixels per compiled chunk (memory ∝ chunk × events per pixel).
+    - `chunk_pixels`: pixels per compiled chunk (memory ∝ chunk × events per pixel;
+      this and `sub_batch` are the JAX backend's: the fused one works pixel by pixel).
     - `sub_batch`: pixels per `lax.map` step inside a chunk.
       Defaults by the device kind (:func:`batch_sizes`): 2048 / 128 on a CPU (each
       step's matrices stay in cache), 131072 / 131072 on a GPU (one step per chunk:
@@ -430,11 +431,12 @@ def reconstruct(
     - `backend`: `"jax"` (each chunk of pixels assembled and solved by a compiled JAX
       kernel: any solver, noise model and device), `"fused"` (the CPU kernel of
       :mod:`._fused`: each pixel's system formed from band segments and solved where
-      it is formed, in float64, on `threads` cores; the ideal-sensor problem with the
-      active-set solver only — a `ValueError` says why otherwise) or `"auto"`
-      (default): fused where it applies and the solve would run on a CPU, else JAX.
-      The fused cube is the float64 solve of the same events (within 0.01° SAM of the
-      JAX path run in float64; float32 JAX differs from both by its rounding).
+      it is formed, in float64, on `threads` cores; the active-set solver with the
+      linear lookup, ideal or noise-aware — a `ValueError` says why otherwise) or
+      `"auto"` (default): fused where it applies and the solve would run on a CPU,
+      else JAX. The fused cube is the float64 solve of the same events (within 0.01°
+      SAM of the JAX path run in float64; float32 JAX differs from both by its
+      rounding).
     - `threads`: worker threads of the fused backend (default: the usable cores).
     - `mesh`: a `jax.sharding.Mesh` with a `"pixels"` axis
       (:func:`evhsi_jax.sharding.pixel_mesh`): each chunk's pixels are split over its devices,
@@ -490,7 +492,7 @@ def reconstruct(
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     if threads is not None and int(threads) < 1:
         raise ValueError(f"threads must be >= 1, got {threads}")
-    why_not = fused_supported(spec, cfg, noise)
+    why_not = fused_supported(spec, cfg, noise, sweeps)
     if backend == "fused" and why_not is not None:
         raise ValueError(f"the fused backend cannot run this reconstruction: {why_not}")
     fused = backend == "fused" or (
@@ -547,7 +549,7 @@ def reconstruct(
     if fused:
         _solve_fused_all(
             rig, table, cfg, spec, sweeps, lists, lead, offsets_all, thr_on, thr_off,
-            cube, kkt_all, threads, bar.update,
+            cube, kkt_all, threads, bar.update, noise,
         )  # fmt: skip
     for b in batches:
         valid = b.pixel >= 0
@@ -627,7 +629,7 @@ BACKENDS = ("auto", "jax", "fused")
 
 def _solve_fused_all(
     rig, table, cfg, spec, sweeps, lists, lead, offsets, thr_on, thr_off, cube, kkt_all,
-    threads, progress,
+    threads, progress, noise=None,
 ):  # fmt: skip
     """Every pixel with events through the fused CPU kernel (:mod:`._fused`), into
     `cube` and `kkt_all`; a pixel whose float64 factorisation failed (a system
@@ -637,7 +639,7 @@ def _solve_fused_all(
     if sel.size == 0:
         return
     w = offsets.size
-    prob = FusedProblem(rig, table, cfg, spec, w, offsets, sweeps)
+    prob = FusedProblem(rig, table, cfg, spec, w, offsets, sweeps, noise)
     x, kkt, steps = solve_fused(
         prob, sel, starts, counts, t_rel, sgn, lead, thr_on, thr_off,
         threads=threads, progress=progress,
@@ -667,7 +669,10 @@ def _solve_fused_all(
                 )
             )
         )
-        xr, kr = _solve_robust(rig, table, cfg, max(spec.iters, 48), px, sweeps, None)
+        noise_j = None if noise is None else jax.device_put(np.asarray(noise, dtype))
+        xr, kr = _solve_robust(
+            rig, table, cfg, max(spec.iters, 48), px, sweeps, noise_j
+        )
         x[bad] = np.asarray(xr)[: idx.size]
         kkt[bad] = np.asarray(kr)[: idx.size]
     cube[sel] = x

@@ -355,7 +355,9 @@ def pixel_system(
     t_leave_s = sw * period - t0_phase_us + t_leave
     spacing = (t_leave - t_arrive) / g
     frac = (jnp.arange(g, dtype=dtype) + 0.5) / g
-    t_g = (t_arrive_s[:, None] + frac[None, :] * (t_leave - t_arrive)).reshape(-1)  # (s*g,)
+    t_g = (t_arrive_s[:, None] + frac[None, :] * (t_leave - t_arrive)).reshape(
+        -1
+    )  # (s*g,)
     sw_g = jnp.repeat(sw, g)
     t_arrive_g = jnp.repeat(t_arrive_s, g)
     t_leave_g = jnp.repeat(t_leave_s, g)

@@ -148,9 +148,34 @@ def test_backend_choice_and_refusals(captures):
     with pytest.raises(ValueError, match="solver 'apg'"):
         ev.reconstruct(events, rig, backend="fused", solver="apg")
     assert _fused.fused_supported(
-        _pipeline.solver_spec("auto"), ProblemConfig(), np.array([0.01, 0.0, 0.0])
-    ).startswith("a sensor noise model")
+        _pipeline.solver_spec("auto"), ProblemConfig(lookup_order=3), None
+    ).startswith("lookup_order 3")
     # auto on a CPU: the fused kernel, the same cube as asking for it.
     np.testing.assert_array_equal(
         ev.reconstruct(events, rig), ev.reconstruct(events, rig, backend="fused")
     )
+
+
+@pytest.mark.parametrize(
+    "keys,sweeps",
+    [
+        # Noise weights, the dark-channel prior and the robust reweighting (Huber and
+        # rejection of background events), no photoreceptor.
+        (dict(threshold_noise=0.01, timestamp_jitter_us=5.0, noise_rate_hz=3.0), 1),
+        # The realistic preset: also the photoreceptor's lag and its relinearised
+        # model (Gauss–Newton pass), a skewed band, a curved sweep.
+        (dict(sensor="realistic"), 2),
+    ],
+)
+def test_noise_aware_fused_equals_float64_jax(keys, sweeps):
+    """With a sensor noise model the fused kernel solves the noise-aware problem of
+    the JAX path (same weights, priors, reweighting and low-pass rows)."""
+    rig = ev.Rig(**keys)
+    assert _pipeline.noise_model(rig) is not None
+    scene = ev.load_scene("colorchecker", SIZE)
+    events, info = ev.simulate(scene, rig, sweeps=sweeps, key=jr.key(5),
+                               return_info=True)  # fmt: skip
+    fused, finfo, ref = _both(rig, events, info, ProblemConfig())
+    assert _sam(fused, ref).max() < 0.05
+    assert np.abs(fused - ref).max() < 2e-3 * np.abs(ref).max()
+    assert np.all(np.isfinite(finfo.kkt[finfo.solved]))
