@@ -10,7 +10,9 @@ true per-pixel thresholds; reconstructed (float32, solver `auto`) with
 - "noise + low-pass": as above plus `photoreceptor_hz` 10 000 (one Gauss–Newton pass of
   the linearised photoreceptor model: a second assembly and solve).
 
-One warm-up call each (compiles), then `--repeats` timed calls; medians in one process,
+Each case on both backends (`--backends`): the fused CPU kernel on `--workers` threads
+(default 1, to compare with the JAX path's one XLA device) and the JAX kernels. One
+warm-up call each (compiles), then `--repeats` timed calls; medians in one process,
 with the same run's float32 matmul GFLOP/s (1024² NumPy matmul) so that machines compare.
 
 Run: `.venv/bin/python experiments/bench_noise_path.py [--size 48x72] [--repeats 5]`
@@ -47,6 +49,10 @@ def main():
     ap.add_argument("--size", default="48x72")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--out", default="experiments/results/bench_noise_path.json")
+    ap.add_argument("--backends", default="fused,jax")
+    ap.add_argument(
+        "--workers", type=int, default=1, help="threads of the fused backend (1)"
+    )
     args = ap.parse_args()
     h, w = (int(v) for v in args.size.split("x"))
     scene = ev.load_scene("colorchecker", (h, w))
@@ -63,43 +69,45 @@ def main():
     }
     rows = {}
     gflops = [matmul_gflops()]
-    for name, rig in cases.items():
-        cal = ev.Calibration(rig, *maps)
-        cube = ev.reconstruct(events, cal)  # warm-up: compiles
-        times = []
-        for _ in range(args.repeats):
-            t = time.perf_counter()
-            ev.reconstruct(events, cal)
-            times.append(time.perf_counter() - t)
-        med = statistics.median(times)
-        m = ev.evaluate(cube, truth)
-        rows[name] = {
-            "median_s": med,
-            "px_per_s": h * w / med,
-            "times_s": times,
-            "sam_deg": m["sam_deg"],
-            "psnr_db": m["psnr_db"],
-        }
-        print(
-            f"{name:18s} {h * w / med:9,.0f} px/s  (median {med:.3f} s)  "
-            f"SAM {m['sam_deg']:.2f}°  PSNR {m['psnr_db']:.2f} dB",
-            flush=True,
-        )
+    for backend in args.backends.split(","):
+        for name, rig in cases.items():
+            cal = ev.Calibration(rig, *maps)
+            kw = dict(backend=backend, threads=args.workers)
+            cube = ev.reconstruct(events, cal, **kw)  # warm-up: compiles
+            times = []
+            for _ in range(args.repeats):
+                t = time.perf_counter()
+                ev.reconstruct(events, cal, **kw)
+                times.append(time.perf_counter() - t)
+            med = statistics.median(times)
+            m = ev.evaluate(cube, truth)
+            rows[f"{name} ({backend})"] = {
+                "backend": backend,
+                "case": name,
+                "median_s": med,
+                "px_per_s": h * w / med,
+                "times_s": times,
+                "sam_deg": m["sam_deg"],
+                "psnr_db": m["psnr_db"],
+            }
+            print(
+                f"{name:18s} {backend:5s} {h * w / med:9,.0f} px/s  (median {med:.3f} "
+                f"s)  SAM {m['sam_deg']:.2f}°  PSNR {m['psnr_db']:.2f} dB",
+                flush=True,
+            )
     gflops.append(matmul_gflops())
-    base = rows["ideal path"]["median_s"]
-    for name, r in rows.items():
+    for r in rows.values():
+        base = rows[f"ideal path ({r['backend']})"]["median_s"]
         r["cost_vs_ideal"] = r["median_s"] / base
     print(
-        "cost vs ideal path: "
+        "cost vs the same backend's ideal path: "
         + ", ".join(f"{k} {v['cost_vs_ideal']:.2f}x" for k, v in rows.items())
         + f"; float32 matmul {statistics.mean(gflops):.1f} GFLOP/s"
     )
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(
-        json.dumps(
-            {"size": [h, w], "matmul_gflops": gflops, "rows": rows}, indent=2
-        )
+        json.dumps({"size": [h, w], "matmul_gflops": gflops, "rows": rows}, indent=2)
         + "\n"
     )
 

@@ -141,7 +141,7 @@ def profile_sweep(scene, rig, chunk_columns: int) -> dict:
 
             li = np.asarray(log_i)
             r0 = li[0].copy()
-            step, pix, t_ev, up_ev, n_ev = events_scan(
+            _, _, t_ev, up_ev, n_ev = events_scan(
                 li, np.asarray((starts[ci] + np.arange(length)) * dt, np.float32),
                 thr_on[:, cols].T.reshape(-1).astype(np.float32),
                 thr_off[:, cols].T.reshape(-1).astype(np.float32),
@@ -150,37 +150,28 @@ def profile_sweep(scene, rig, chunk_columns: int) -> dict:
                 rig.reset_mode == "release", np.zeros((1, 1), np.float32), False,
                 li.size,
             )  # fmt: skip
-            step, pix, t_ev, up_ev = step[:n_ev], pix[:n_ev], t_ev[:n_ev], up_ev[:n_ev]
+            t_ev, up_ev = t_ev[:n_ev], up_ev[:n_ev]
             t1 = t2 = time.perf_counter()
-            ts.append(np.floor(t_ev).astype(np.int64))
-            ps.append(up_ev)
-            t3 = time.perf_counter()
-            if i == 0:
-                ts, ps = [], []
-                continue
-            parts["intensity"] += t_mid - t0
-            parts["scan"] += t1 - t_mid
-            parts["extract"] += t3 - t2
-            continue
-        (fired, tc, up), _ = sim._trigger_scan_jit(
-            rig,
-            log_i,
-            jnp.asarray((starts[ci] + np.arange(length)) * dt, jnp.float32),
-            jnp.asarray(thr_on[:, cols].T.reshape(-1)),
-            jnp.asarray(thr_off[:, cols].T.reshape(-1)),
-            None,
-            None,
-        )
-        fired.block_until_ready()
-        t1 = time.perf_counter()
-        if jax.default_backend() == "cpu":  # the host path: dense arrays, np.nonzero
-            fired, tc, up = np.asarray(fired), np.asarray(tc), np.asarray(up)
-            t2 = time.perf_counter()
-            step, pix = np.nonzero(fired)
-            t_ev, up_ev = tc[step, pix], up[step, pix]
-        else:  # gathered on the device, only the crossings come back ("to_host")
-            step, pix, t_ev, up_ev = sim._fired_events(fired, tc, up, on_host=False)
-            t2 = time.perf_counter()
+        else:
+            (fired, tc, up), _ = sim._trigger_scan_jit(
+                rig,
+                log_i,
+                jnp.asarray((starts[ci] + np.arange(length)) * dt, jnp.float32),
+                jnp.asarray(thr_on[:, cols].T.reshape(-1)),
+                jnp.asarray(thr_off[:, cols].T.reshape(-1)),
+                None,
+                None,
+            )
+            fired.block_until_ready()
+            t1 = time.perf_counter()
+            if jax.default_backend() == "cpu":  # the XLA scan: dense arrays, nonzero
+                fired, tc, up = np.asarray(fired), np.asarray(tc), np.asarray(up)
+                t2 = time.perf_counter()
+                step, pix = np.nonzero(fired)
+                t_ev, up_ev = tc[step, pix], up[step, pix]
+            else:  # gathered on the device, only the crossings come back ("to_host")
+                _, _, t_ev, up_ev = sim._fired_events(fired, tc, up, on_host=False)
+                t2 = time.perf_counter()
         ts.append(np.floor(t_ev).astype(np.int64))
         ps.append(up_ev)
         t3 = time.perf_counter()

@@ -212,6 +212,40 @@ def _acc_stored(qm, qv, first, r, c, lo, hi, s2):
 
 @njit(inline=True)
 @no_type_check
+def _add_events(qm, qv, first, evr, evc, evlo, evhi, u, k):
+    """The kept event rows into Q and q, row i weighted by u[i] (a row's residual
+    by u, its Gram term by u²; u = 0 drops it)."""
+    for i in range(k):
+        if evhi[i] > evlo[i] and u[i] > 0.0:
+            _acc_stored(qm, qv, first, evr[i], evc[i], evlo[i], evhi[i], u[i] * u[i])
+
+
+@njit(inline=True)
+@no_type_check
+def _clear_events(evr, evlo, evhi, k):
+    """Zero the kept event rows (each only over its span)."""
+    for i in range(k):
+        ri = evr[i]
+        for j in range(evlo[i], evhi[i]):
+            ri[j] = 0.0
+
+
+@njit(inline=True)
+@no_type_check
+def _restore_drift(qm, qv, qd, qvd, first):
+    """Q, q ← the kept drift part (anti-drift and dark-channel rows) over the
+    envelope."""
+    m = qv.size
+    for i in range(m):
+        qv[i] = qvd[i]
+        qi = qm[i]
+        di = qd[i]
+        for j in range(first[i], i + 1):
+            qi[j] = di[j]
+
+
+@njit(inline=True)
+@no_type_check
 def _add_priors(qm, first, spec, spec_first, spec_w, ridge_rel, spec_trace):
     """The spectral prior spec_w·S (inside its envelope) and the ridge
     ridge_rel·(tr Q_data + spec_w tr S)/M, as :func:`._problem._system`."""
@@ -404,6 +438,21 @@ def _lowpass_rows(
         evhi[i] = hi
 
 
+@njit(inline=True)
+@no_type_check
+def _assemble_solve(
+    restore, qm, qv, qd, qvd, first, evr, evc, evlo, evhi, u, k, spec, spec_first,
+    spec_w, par, free, lf, inv, x, p, gr, max_iters,
+):  # fmt: skip
+    """Q, q ← (the kept drift part, if `restore`) + the event rows weighted by `u` +
+    the priors; then the box QP into `x`. Returns its steps (−1: failed)."""
+    if restore:
+        _restore_drift(qm, qv, qd, qvd, first)
+    _add_events(qm, qv, first, evr, evc, evlo, evhi, u, k)
+    _add_priors(qm, first, spec, spec_first, spec_w, par[P_RIDGE], par[P_SPEC_TRACE])
+    return _box_qp(qm, qv, first, free, lf, inv, x, p, gr, par[P_TOL], max_iters)
+
+
 @njit
 @no_type_check
 def solve_pixels(
@@ -437,7 +486,6 @@ def solve_pixels(
     robust_steps = ipar[I_ROBUST] if noisy_model else 0
     peak = target == 1 or target == 3
     flat = target >= 2
-    tol = par[P_TOL]
     kmax = 1
     for r in range(sel.size):
         kmax = max(kmax, use[sel[r]])
@@ -642,41 +690,28 @@ def solve_pixels(
                 for j in range(first[i], i + 1):
                     qd[i, j] = qm[i, j]
         for i in range(k):
-            if evhi[i] > evlo[i]:
-                _acc_stored(qm, qv, first, evr[i], evc[i], evlo[i], evhi[i], 1.0)
+            zz[i] = 1.0
         spec_w = par[P_ASPEC] / (s_hat * s_hat) if norm else par[P_ASPEC]
-        # Priors need the final envelope: the spectral prior's rows are added to it.
-        for i in range(m):
-            if spec_first[i] < first[i]:
-                first[i] = spec_first[i]
-        _add_priors(qm, first, spec, spec_first, spec_w, par[P_RIDGE],
-                    par[P_SPEC_TRACE])  # fmt: skip
-        steps = _box_qp(qm, qv, first, free, lf, inv, x, p, gr, tol, max_iters)
+        steps = _assemble_solve(
+            False, qm, qv, qd, qvd, first, evr, evc, evlo, evhi, zz, k, spec,
+            spec_first, spec_w, par, free, lf, inv, x, p, gr, max_iters,
+        )  # fmt: skip
         # The photoreceptor model linearised at the answer replaces the delay-shifted
         # event rows (Gauss–Newton passes).
         for _ in range(lp_passes):
             if steps < 0:
                 break
-            for i in range(k):
-                ri = evr[i]
-                for j in range(evlo[i], evhi[i]):
-                    ri[j] = 0.0
+            _clear_events(evr, evlo, evhi, k)
             _lowpass_rows(
                 x, traw, step, wn, k, phase, off, par, ipar, table, span_lo, span_hi,
                 vv, fq, qpos, qi0, order, evr, evc, evlo, evhi,
             )  # fmt: skip
-            for i in range(m):
-                qv[i] = qvd[i]
-                qi = qm[i]
-                di = qd[i]
-                for j in range(first[i], i + 1):
-                    qi[j] = di[j]
             for i in range(k):
-                if evhi[i] > evlo[i]:
-                    _acc_stored(qm, qv, first, evr[i], evc[i], evlo[i], evhi[i], 1.0)
-            _add_priors(qm, first, spec, spec_first, spec_w, par[P_RIDGE],
-                        par[P_SPEC_TRACE])  # fmt: skip
-            steps = _box_qp(qm, qv, first, free, lf, inv, x, p, gr, tol, max_iters)
+                zz[i] = 1.0
+            steps = _assemble_solve(
+                True, qm, qv, qd, qvd, first, evr, evc, evlo, evhi, zz, k, spec,
+                spec_first, spec_w, par, free, lf, inv, x, p, gr, max_iters,
+            )  # fmt: skip
         # Robust reweighting: rows far outside their noise count linearly (Huber)
         # or not at all.
         for _ in range(robust_steps):
@@ -703,23 +738,11 @@ def solve_pixels(
                 zz[i] = u
             if not any_big:
                 break
-            for i in range(m):
-                qv[i] = qvd[i]
-                qi = qm[i]
-                di = qd[i]
-                for j in range(first[i], i + 1):
-                    qi[j] = di[j]
-            for i in range(k):
-                if evhi[i] > evlo[i] and zz[i] > 0.0:
-                    _acc_stored(qm, qv, first, evr[i], evc[i], evlo[i], evhi[i],
-                                zz[i] * zz[i])  # fmt: skip
-            _add_priors(qm, first, spec, spec_first, spec_w, par[P_RIDGE],
-                        par[P_SPEC_TRACE])  # fmt: skip
-            steps = _box_qp(qm, qv, first, free, lf, inv, x, p, gr, tol, max_iters)
-        for i in range(k):  # clear the kept event rows for the next pixel
-            ri = evr[i]
-            for j in range(evlo[i], evhi[i]):
-                ri[j] = 0.0
+            steps = _assemble_solve(
+                True, qm, qv, qd, qvd, first, evr, evc, evlo, evhi, zz, k, spec,
+                spec_first, spec_w, par, free, lf, inv, x, p, gr, max_iters,
+            )  # fmt: skip
+        _clear_events(evr, evlo, evhi, k)  # for the next pixel
         if steps < 0:
             for i in range(m):
                 out_x[r, i] = np.nan
