@@ -1,11 +1,16 @@
 """numba kernel of the fused CPU path (:mod:`._fused`): one pixel at a time, its rows
 are formed as band segments, its Q accumulated in float64 inside the rows' envelope,
 factorised by an envelope Cholesky and solved by the primal active-set method — the
-same problem and the same steps as :func:`._problem.pixel_system` (ideal sensor) and
-:func:`._solvers.active_set_batch`, without any M×M matrix leaving the cache.
+same problem and the same steps as :func:`._problem.pixel_system` (ideal or with a noise
+model, including the photoreceptor pass and the robust reweighting of
+:func:`._pipeline._solve_chunk`) and :func:`._solvers.active_set_batch`, without any
+M×M matrix leaving the cache.
 
 Imported on first use (numba). Marked `no_type_check` so the jaxtyping import hook of
-the test suite leaves it to numba.
+the test suite leaves it to numba. The per-row helpers are inlined; `_assemble_solve`
+(called three times) and `_lowpass_rows` are compiled as functions of their own:
+inlining them too was no faster on two threads in a development check and doubled the
+first compilation (~55 s against ~27 s, once per install: numba caches it).
 """
 
 from __future__ import annotations
@@ -328,7 +333,7 @@ def _box_qp(qm, qv, first, free, lf, inv, x, p, gr, tol, max_iters):
     return steps
 
 
-@njit(inline=True)
+@njit
 @no_type_check
 def _lowpass_rows(
     x0, tr, step, w_log, k, phase, off, par, ipar, table, span_lo, span_hi, vv, fq,
@@ -438,7 +443,7 @@ def _lowpass_rows(
         evhi[i] = hi
 
 
-@njit(inline=True)
+@njit
 @no_type_check
 def _assemble_solve(
     restore, qm, qv, qd, qvd, first, evr, evc, evlo, evhi, u, k, spec, spec_first,
