@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._base import check_outputs, same_file
+from ._base import check_outputs, same_file, shard
 from ._io import CUBE_SUFFIXES
 from ._model import check_roi
 
@@ -311,13 +311,6 @@ def _calib_inputs(args) -> dict:
 MAX_AUTO_CPU_DEVICES = 8
 
 
-def _usable_cores() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        return os.cpu_count() or 1
-
-
 def _cpu_devices(devices) -> None:
     """`--devices N` (N > 1) on a CPU: ask XLA for N host devices, so the pixels can be
     sharded over them and fill the cores (one CPU device keeps ~1.4 of 2 cores busy;
@@ -327,7 +320,7 @@ def _cpu_devices(devices) -> None:
     started keep their devices); a device count already in XLA_FLAGS wins. Harmless on
     GPU machines (the GPUs stay the default devices)."""
     if devices is None:
-        devices = min(_usable_cores(), MAX_AUTO_CPU_DEVICES)
+        devices = min(shard.usable_cores(), MAX_AUTO_CPU_DEVICES)
     flags = os.environ.get("XLA_FLAGS", "")
     if devices and devices > 1 and "xla_force_host_platform_device_count" not in flags:
         os.environ["XLA_FLAGS"] = (

@@ -60,6 +60,7 @@ __all__ = [
     "device_platform",
     "sub_batch_for",
     "chunk_groups",
+    "usable_cores",
 ]
 
 PIXELS = "pixels"
@@ -221,6 +222,14 @@ def replicated(mesh, tree):
     return jax.tree.map(
         lambda a: to_global(mesh, a, sharded=False) if eqx.is_array(a) else a, tree
     )
+
+
+def usable_cores() -> int:
+    """The CPU cores this process may run on (its affinity mask where the OS has one)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not Linux
+        return max(1, os.cpu_count() or 1)
 
 
 def device_platform(mesh: Mesh | None = None) -> str:

@@ -35,15 +35,19 @@ workers; the kernel releases the GIL.
 from __future__ import annotations
 
 import concurrent.futures
-import os
 
 import numpy as np
 
-from .._base import numba_available
+from .._base import numba_available, shard
 from .._model import Rig
-from ._problem import INT_TARGETS, ProblemConfig, spectral_prior_matrix
+from ._problem import (
+    INT_TARGETS,
+    ProblemConfig,
+    lit_interval_us,
+    spectral_prior_matrix,
+)
 
-__all__ = ["fused_supported", "FusedProblem", "solve_fused", "usable_cores"]
+__all__ = ["fused_supported", "FusedProblem", "solve_fused"]
 
 #: Table entries below this fraction of the table's peak count as zero.
 TRIM = 1e-10
@@ -51,20 +55,7 @@ TRIM = 1e-10
 BLOCK_PIXELS = 512
 
 
-def jit_par_size() -> int:
-    from ._fused_jit import N_PAR
-
-    return N_PAR
-
-
-def usable_cores() -> int:
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # not on Linux
-        return max(1, os.cpu_count() or 1)
-
-
-def fused_supported(spec, cfg: ProblemConfig, noise, sweeps: int = 1) -> str | None:
+def fused_supported(spec, cfg: ProblemConfig) -> str | None:
     """Why the fused path cannot run this reconstruction (None: it can)."""
     if not numba_available():
         return "numba is not available"
@@ -82,7 +73,7 @@ class FusedProblem:
 
     def __init__(self, rig: Rig, table, cfg: ProblemConfig, spec, width: int,
                  column_offsets_us: np.ndarray, sweeps: int, noise=None):  # fmt: skip
-        from ._problem import lit_interval_us
+        from ._fused_jit import N_PAR  # (numba: only when the fused path runs)
 
         tab = np.asarray(table.values, np.float64)
         m = tab.shape[1]
@@ -105,7 +96,7 @@ class FusedProblem:
         f = lambda v: float(np.asarray(v))  # noqa: E731
         speed = f(rig.band_speed_nm_per_us)
         arrive, leave = (f(v) for v in lit_interval_us(rig, 0.0))
-        par = np.zeros(jit_par_size())
+        par = np.zeros(N_PAR)
         par[:19] = [
             f(rig.baseline_level), f(rig.refractory_us), f(rig.period_us), speed,
             f(rig.sweep_start_nm), f(rig.sweep_curvature_nm),
@@ -179,7 +170,7 @@ def solve_fused(
         return hi - lo
 
     blocks = range(0, n, BLOCK_PIXELS)
-    threads = usable_cores() if threads is None else max(1, int(threads))
+    threads = shard.usable_cores() if threads is None else max(1, int(threads))
     if threads == 1 or n <= BLOCK_PIXELS:
         for lo in blocks:
             done = run(lo)

@@ -492,7 +492,7 @@ def reconstruct(
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     if threads is not None and int(threads) < 1:
         raise ValueError(f"threads must be >= 1, got {threads}")
-    why_not = fused_supported(spec, cfg, noise, sweeps)
+    why_not = fused_supported(spec, cfg)
     if backend == "fused" and why_not is not None:
         raise ValueError(f"the fused backend cannot run this reconstruction: {why_not}")
     fused = backend == "fused" or (

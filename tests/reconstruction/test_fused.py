@@ -148,7 +148,7 @@ def test_backend_choice_and_refusals(captures):
     with pytest.raises(ValueError, match="solver 'apg'"):
         ev.reconstruct(events, rig, backend="fused", solver="apg")
     assert _fused.fused_supported(
-        _pipeline.solver_spec("auto"), ProblemConfig(lookup_order=3), None
+        _pipeline.solver_spec("auto"), ProblemConfig(lookup_order=3)
     ).startswith("lookup_order 3")
     # auto on a CPU: the fused kernel, the same cube as asking for it.
     np.testing.assert_array_equal(
