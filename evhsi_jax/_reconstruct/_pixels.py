@@ -211,9 +211,17 @@ def pixel_lists(events: EventStream, t_start_us: int):
     **Returns:** `(counts, starts, t_us, sign)` — events per pixel `(H*W,)`, where each
     pixel's events start `(H*W,)`, their times relative to `t_start_us` plus
     `TIMESTAMP_CENTRE_US` (float64) and polarities ±1 (int8): pixel p's events are
-    `t_us[starts[p] : starts[p] + counts[p]]`. The sort is stable (a counting sort by
-    pixel with numba)."""
+    `t_us[starts[p] : starts[p] + counts[p]]`, in time order. With numba one pass
+    counts and one fills the lists (`_group_jit.pixel_lists`); the NumPy path (a
+    stable index sort, then gathers) is the reference."""
     w, h = events.width, events.height
+    if use_numba() and len(events):
+        from . import _group_jit
+
+        return _group_jit.pixel_lists(
+            events.x, events.y, events.t_us, events.p, np.int64(w), np.int64(w * h),
+            np.int64(t_start_us), TIMESTAMP_CENTRE_US,
+        )  # fmt: skip
     pix = events.y.astype(np.int64) * w + events.x.astype(np.int64)
     counts = np.bincount(pix, minlength=w * h)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])

@@ -357,3 +357,21 @@ def test_failed_batched_solves_are_resolved_exactly(
     assert np.all(np.isfinite(cube)) and np.all(np.isfinite(got.kkt[got.solved]))
     np.testing.assert_allclose(cube, ref, atol=1e-4)
     assert np.max(got.kkt[got.solved]) < 1e-4
+
+
+def test_pixel_lists_kernel_matches_the_numpy_reference(capture):
+    # The one-pass numba fill of every pixel's event list (the fused backend's input)
+    # must give the NumPy path's counts, starts, times and polarities bit for bit.
+    from evhsi_jax._base._numba import numba_available, use_backend
+    from evhsi_jax._reconstruct._pixels import pixel_lists
+
+    if not numba_available():
+        pytest.skip("numba is not importable here")
+    _, _, events, _ = capture
+    with use_backend("numpy"):
+        ref = pixel_lists(events, 3)
+    with use_backend("numba"):
+        got = pixel_lists(events, 3)
+    for a, b in zip(got, ref):
+        assert a.dtype == b.dtype and a.shape == b.shape
+        np.testing.assert_array_equal(a, b)
