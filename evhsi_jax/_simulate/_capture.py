@@ -226,7 +226,9 @@ def _chunk_kernel(
         log_i = _log_intensity_jit(
             rig, table_values, lo_nm, t_local, offsets, spectra, labels, lowpass_hz
         )
-        out, state = _trigger_scan_jit(rig, log_i, t_local, thr_on, thr_off, state, ref_noise)
+        out, state = _trigger_scan_jit(
+            rig, log_i, t_local, thr_on, thr_off, state, ref_noise
+        )
     else:
         out, state = _intensity_and_trigger(
             rig,
@@ -362,8 +364,8 @@ def simulate(
         desc=f"simulate {h}x{w}x{sweeps}",
     )
     groups = shard.chunk_groups(n_chunks, mesh)  # one chunk each without a mesh
-    # On a CPU the state machine runs as a numba kernel (same crossings, bit for bit;
-    # `_scan_jit`); `EVHSI_NO_NUMBA=1` keeps the XLA scan.
+    # On a CPU the state machine runs as a numba kernel (the same crossings, times to
+    # float32 rounding; `_scan_jit`); `EVHSI_NO_NUMBA=1` keeps the XLA scan.
     compiled_scan = mesh is None and on_host and use_numba()
     group_states = [None] * len(groups)
     lowpass_hz = (
@@ -501,12 +503,8 @@ def _chunk_host_scan(
         np.float32,
     )
     t = readonly(np.asarray(t_local), np.float32)
-    if state is None:
-        r = np.array(log_i[0], np.float32)
-        t_free = np.full(r.shape, _FAR_PAST_US, np.float32)
-        pending = np.zeros(r.shape, bool)
-    else:
-        r, t_free, pending = (np.array(a) for a in state)
+    if state is None:  # the XLA path's starting state, as host arrays
+        state = tuple(np.asarray(a) for a in initial_state(jnp.asarray(log_i[0])))
     noise = np.zeros((1, 1)) if ref_noise is None else np.asarray(ref_noise)
     noise = readonly(noise, np.float32)
     args = (
@@ -517,9 +515,8 @@ def _chunk_host_scan(
     nt, p = log_i.shape
     span = float(t[-1] - t[0]) if nt > 1 else 0.0
     cap = p * min(nt - 1, int(span / max(float(rig.refractory_us), 1e-3)) + 2)
-    keep = (r.copy(), t_free.copy(), pending.copy())
-    while True:
-        st = (keep[0].copy(), keep[1].copy(), keep[2].copy())
+    while True:  # the kernel advances the state in place: hand it a copy
+        st = tuple(np.array(a) for a in state)
         step, pix, tc, up, n = events_scan(
             *args, *st, rig.reset_mode == "release", noise, ref_noise is not None,
             max(cap, 1),
@@ -527,9 +524,6 @@ def _chunk_host_scan(
         if n <= cap:
             return step[:n], pix[:n], tc[:n], up[:n], st
         cap = n
-
-
-_FAR_PAST_US = -1e9  # the state's "released long ago" (`_model._sensor._FAR_PAST`)
 
 
 def _fired_events(fired, tc, up, on_host: bool):
@@ -629,7 +623,9 @@ def _log_intensity_fn(mesh, palette: bool, lo_nm: float):
 def _scan_fn(mesh, fresh: bool):
     def local(rig, log_i, t_local, thr_on, thr_off, state):
         state = None if fresh else jax.tree.map(lambda a: a[0], state)
-        out, state = _trigger_scan(rig, log_i[0], t_local[0], thr_on[0], thr_off[0], state)
+        out, state = _trigger_scan(
+            rig, log_i[0], t_local[0], thr_on[0], thr_off[0], state
+        )
         return jax.tree.map(lambda a: a[None], (*out, state))
 
     rows = P(shard.PIXELS)

@@ -1,7 +1,9 @@
 """numba kernel of the simulator's pixel state machine on a CPU (imported on first use).
 
 The same steps as :func:`evhsi_jax._model._sensor.exact_events_scan`, in float32 and in
-the same order of operations (so the same crossing times to the bit), but the time
+the same order of operations with multiply-adds contracted as XLA does (so the same
+crossings; a time may differ in its last bit where the two compilers round a
+product differently: a timestamp then rarely falls on the other side of a µs), but the time
 loop runs in compiled code instead of one XLA while-loop iteration per time sample,
 and only the crossings come out — in `np.nonzero(fired)` order, step by step and
 pixel by pixel within a step — instead of three dense `(t, pixels)` arrays that the
