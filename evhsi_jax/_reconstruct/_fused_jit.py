@@ -89,17 +89,24 @@ def _band_sum(i0, frac, tabsum):
 
 @njit(inline=True)
 @no_type_check
-def _accumulate(row, c, lohi, qm, qv, first):
-    """Q += r rᵀ (lower triangle), q += r c over the row's span; clears the row."""
-    lo, hi = lohi[0], lohi[1]
+def _acc_stored(qm, qv, first, r, c, lo, hi, s2):
+    """Q += s2 r rᵀ (lower triangle), q += s2 r c over [lo, hi) (the row is kept)."""
     for i in range(lo, hi):
-        ri = row[i]
+        ri = s2 * r[i]
         qi = qm[i]
         for j in range(_u(lo), _u(i + 1)):
-            qi[j] += ri * row[j]
+            qi[j] += ri * r[j]
         qv[i] += ri * c
         if lo < first[i]:
             first[i] = lo
+
+
+@njit(inline=True)
+@no_type_check
+def _accumulate(row, c, lohi, qm, qv, first):
+    """Q += r rᵀ (lower triangle), q += r c over the row's span; clears the row."""
+    lo, hi = lohi[0], lohi[1]
+    _acc_stored(qm, qv, first, row, c, lo, hi, 1.0)
     for i in range(_u(lo), _u(hi)):
         row[i] = 0.0
     lohi[0] = row.size
@@ -199,20 +206,6 @@ def _gradient(qm, first, qv, x, g):
             gi += qi[j] * x[j]
             g[j] += qi[j] * xi
         g[i] += gi
-
-
-@njit(inline=True)
-@no_type_check
-def _acc_stored(qm, qv, first, r, c, lo, hi, s2):
-    """Q += s2 r rᵀ (lower triangle), q += s2 r c over [lo, hi) (the row is kept)."""
-    for i in range(lo, hi):
-        ri = s2 * r[i]
-        qi = qm[i]
-        for j in range(_u(lo), _u(i + 1)):
-            qi[j] += ri * r[j]
-        qv[i] += ri * c
-        if lo < first[i]:
-            first[i] = lo
 
 
 @njit(inline=True)
@@ -722,13 +715,12 @@ def solve_pixels(
         for _ in range(robust_steps):
             if steps < 0:
                 break
-            for i in range(k):
+            for i in range(k):  # residuals in standard deviations of their rows
                 ri = evr[i]
                 zi = evc[i]
                 for j in range(evlo[i], evhi[i]):
                     zi += ri[j] * x[j]
-                zz[i] = zi / sigma[i]
-                absz[i] = abs(zz[i])
+                absz[i] = abs(zi / sigma[i])
             med = np.median(absz[:k]) if k > 0 else 0.0
             scale = max(1.4826 * med, 1.0)
             any_big = False
@@ -740,7 +732,7 @@ def solve_pixels(
                     u = math.sqrt(par[P_RC] / a)
                 if a > par[P_REJECT]:
                     u = 0.0
-                zz[i] = u
+                zz[i] = u  # the rows' weights
             if not any_big:
                 break
             steps = _assemble_solve(
