@@ -337,6 +337,39 @@ def _solve_robust(
         return jax.lax.map(one, px)
 
 
+def _device_pixels(t_us, polarity, mask, pix, column, d, offsets, thr_on, thr_off,
+                   dtype) -> PixelEvents:  # fmt: skip
+    """The :class:`PixelEvents` of a batch (padded slots `(n, k)`, flat pixel indices
+    `pix`, columns, clock shifts `d`). Converted on the host and put on the device as
+    they are: `jnp.asarray` of a NumPy array, or a dtype conversion there, is a
+    compiled operation per shape (a cache read at every start of a process)."""
+    return PixelEvents(
+        *jax.device_put(
+            (
+                np.where(mask, t_us + d[:, None], 0.0).astype(dtype),
+                polarity.astype(np.int32),
+                mask,
+                offsets[column].astype(dtype),
+                thr_on[pix].astype(dtype),
+                thr_off[pix].astype(dtype),
+                (-d).astype(dtype),
+            )
+        )
+    )
+
+
+def _solve_robust_at(rig, table, cfg, spec, px, idx, sweeps, noise):
+    """:func:`_solve_robust` for the pixels `idx` of the batch `px`, padded to a power
+    of two (few compiled sizes); NumPy `(x, kkt)` of the `idx.size` pixels."""
+    n_pad = 1 << int(math.ceil(math.log2(idx.size)))
+    sel = np.concatenate([idx, np.full(n_pad - idx.size, idx[0])])
+    xr, kr = _solve_robust(
+        rig, table, cfg, max(spec.iters, 48), jax.tree.map(lambda a: a[sel], px),
+        sweeps, noise,
+    )  # fmt: skip
+    return np.asarray(xr)[: idx.size], np.asarray(kr)[: idx.size]
+
+
 def _augmented_gram(rig, table, cfg, px: PixelEvents, sweeps):
     """$\\hat N^T \\hat N$ of the event rows alone (the paper's SVD system)."""
     bare = dataclasses.replace(cfg, alpha_int=0.0, alpha_spec=0.0, ridge=0.0)
@@ -556,22 +589,10 @@ def reconstruct(
         pix = np.where(valid, b.pixel, 0)
         # Carried references: shift each pixel's clock to start at its reference.
         d = np.where(valid, lead[pix], 0.0)
-        # Converted on the host and put on the device as they are: `jnp.asarray` of
-        # a NumPy array, or a dtype conversion there, is a compiled operation per
-        # shape (a cache read at every start of a process).
-        px = PixelEvents(
-            *jax.device_put(
-                (
-                    np.where(b.mask, b.t_us + d[:, None], 0.0).astype(np_dtype),
-                    b.polarity.astype(np.int32),
-                    b.mask,
-                    offsets_all[b.column].astype(np_dtype),
-                    thr_on[pix].astype(np_dtype),
-                    thr_off[pix].astype(np_dtype),
-                    (-d).astype(np_dtype),
-                )
-            )
-        )
+        px = _device_pixels(
+            b.t_us, b.polarity, b.mask, pix, b.column, d, offsets_all, thr_on,
+            thr_off, np_dtype,
+        )  # fmt: skip
         x, kkt = solve(rig, table, cfg, spec, sub, px, sweeps, noise_j)
         x, kkt = np.asarray(x), np.asarray(kkt)
         failed = valid & ~np.all(np.isfinite(x), axis=1)
@@ -579,18 +600,9 @@ def reconstruct(
             # Rare: re-solve the chunk's failed pixels exactly, one by one.
             x, kkt = x.copy(), kkt.copy()  # device buffers are read-only
             idx = np.flatnonzero(failed)
-            n_pad = 1 << int(math.ceil(math.log2(idx.size)))  # few compiled sizes
-            sel = np.concatenate([idx, np.full(n_pad - idx.size, idx[0])])
-            xr, kr = _solve_robust(
-                rig,
-                table,
-                cfg,
-                max(spec.iters, 48),
-                jax.tree.map(lambda a: a[sel], px),
-                sweeps,
-                noise_j,
+            x[idx], kkt[idx] = _solve_robust_at(
+                rig, table, cfg, spec, px, idx, sweeps, noise_j
             )
-            x[idx], kkt[idx] = np.asarray(xr)[: idx.size], np.asarray(kr)[: idx.size]
         cube[b.pixel[valid]] = x[valid]
         kkt_all[b.pixel[valid]] = kkt[valid]
         bar.update(int(valid.sum()))
@@ -644,37 +656,21 @@ def _solve_fused_all(
         prob, sel, starts, counts, t_rel, sgn, lead, thr_on, thr_off,
         threads=threads, progress=progress,
     )  # fmt: skip
-    bad = steps < 0
-    if bad.any():
-        idx = sel[bad]
-        n_pad = 1 << int(math.ceil(math.log2(idx.size)))
-        idx_p = np.concatenate([idx, np.full(n_pad - idx.size, idx[0])])
-        k = int(counts[idx].max())
-        slot = np.arange(k)
-        mask = slot[None, :] < counts[idx_p][:, None]
-        at = np.where(mask, starts[idx_p][:, None] + slot, 0)
-        t = t_rel[at]
-        d = lead[idx_p]
+    bad = np.flatnonzero(steps < 0)
+    if bad.size:  # their events in padded slots, as group_pixels would give them
+        pix = sel[bad]
+        slot = np.arange(int(counts[pix].max()))
+        mask = slot[None, :] < counts[pix][:, None]
+        at = np.where(mask, starts[pix][:, None] + slot, 0)
         dtype = np.dtype(rig.fwhm_nm.dtype)
-        px = PixelEvents(
-            *jax.device_put(
-                (
-                    np.where(mask, t + d[:, None], 0.0).astype(dtype),
-                    np.where(mask, sgn[at], 0).astype(np.int32),
-                    mask,
-                    offsets[idx_p % w].astype(dtype),
-                    thr_on[idx_p].astype(dtype),
-                    thr_off[idx_p].astype(dtype),
-                    (-d).astype(dtype),
-                )
-            )
-        )
+        px = _device_pixels(
+            t_rel[at], np.where(mask, sgn[at], 0), mask, pix, pix % w, lead[pix],
+            offsets, thr_on, thr_off, dtype,
+        )  # fmt: skip
         noise_j = None if noise is None else jax.device_put(np.asarray(noise, dtype))
-        xr, kr = _solve_robust(
-            rig, table, cfg, max(spec.iters, 48), px, sweeps, noise_j
+        x[bad], kkt[bad] = _solve_robust_at(
+            rig, table, cfg, spec, px, np.arange(bad.size), sweeps, noise_j
         )
-        x[bad] = np.asarray(xr)[: idx.size]
-        kkt[bad] = np.asarray(kr)[: idx.size]
     cube[sel] = x
     kkt_all[sel] = kkt
 
