@@ -31,16 +31,6 @@ import time
 from pathlib import Path
 
 
-def _sam_deg(a, b):
-    import numpy as np
-
-    a = a.reshape(-1, a.shape[-1]).astype(np.float64)
-    b = b.reshape(-1, b.shape[-1]).astype(np.float64)
-    na, nb = np.linalg.norm(a, axis=1), np.linalg.norm(b, axis=1)
-    c = np.sum(a * b, 1) / np.maximum(na * nb, 1e-300)
-    return np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
-
-
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--size", default="96x144")
@@ -115,7 +105,7 @@ def main():
             "psnr_db": metrics["psnr_db"],
         }
         if ref is not None:
-            s = _sam_deg(cube, ref)
+            s = ev.metrics.sam_map_deg(cube, ref)
             row["within_0.1deg_of_float64"] = float(np.mean(s <= 0.1))
             row["sam_to_float64_max_deg"] = float(s.max())
         results["backends"][backend] = row

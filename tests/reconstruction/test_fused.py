@@ -15,13 +15,6 @@ pytestmark = pytest.mark.skipif(not numba_available(), reason="numba is not avai
 SIZE = (6, 8)
 
 
-def _sam(a, b):
-    a = a.reshape(-1, a.shape[-1]).astype(np.float64)
-    b = b.reshape(-1, b.shape[-1]).astype(np.float64)
-    c = np.sum(a * b, 1) / (np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1))
-    return np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
-
-
 def _peaky_scene(rig, h, w, seed=0):
     """Narrow reflectance peaks on a dark floor: the bound x ≥ 0 is active."""
     rng = np.random.default_rng(seed)
@@ -74,7 +67,7 @@ def _both(rig, events, info, cfg, **kw):
 def test_fused_equals_float64_jax(captures, scene, cfg):
     rig, events, info = captures[scene]
     fused, finfo, ref = _both(rig, events, info, cfg)
-    sam = _sam(fused, ref)
+    sam = ev.metrics.sam_map_deg(fused, ref)
     assert np.all(finfo.solved)
     assert sam.max() < 0.05, sam.max()
     assert np.abs(fused - ref).max() < 2e-3 * np.abs(ref).max()
@@ -88,7 +81,7 @@ def test_active_set_steps_match(captures):
     h, w = SIZE
     ref_us = np.where(np.arange(h * w).reshape(h, w) % 3 == 0, -4000.0, np.nan)
     fused, _, ref = _both(rig, events, info, ProblemConfig(), reference_us=ref_us)
-    assert _sam(fused, ref).max() < 0.05
+    assert ev.metrics.sam_map_deg(fused, ref).max() < 0.05
     # Steps were needed: the unconstrained optimum has negative entries here.
     lists = _fused_lists(rig, events)
     prob = _fused.FusedProblem(
@@ -136,7 +129,9 @@ def test_failed_factorisation_falls_back(captures, monkeypatch):
     monkeypatch.setattr(_pipeline, "solve_fused", failing)
     patched = ev.reconstruct(events, rig, backend="fused", **maps)
     assert np.all(np.isfinite(patched))
-    assert _sam(patched, good).max() < 0.5  # float32 JAX against float64 fused
+    assert (
+        ev.metrics.sam_map_deg(patched, good).max() < 0.5
+    )  # float32 JAX against float64 fused
 
 
 def test_backend_choice_and_refusals(captures):
@@ -176,6 +171,6 @@ def test_noise_aware_fused_equals_float64_jax(keys, sweeps):
     events, info = ev.simulate(scene, rig, sweeps=sweeps, key=jr.key(5),
                                return_info=True)  # fmt: skip
     fused, finfo, ref = _both(rig, events, info, ProblemConfig())
-    assert _sam(fused, ref).max() < 0.05
+    assert ev.metrics.sam_map_deg(fused, ref).max() < 0.05
     assert np.abs(fused - ref).max() < 2e-3 * np.abs(ref).max()
     assert np.all(np.isfinite(finfo.kkt[finfo.solved]))
