@@ -335,7 +335,7 @@ class Rig(eqx.Module):
     def __init__(self, **overrides):
         preset = overrides.pop("sensor", None)
         if preset is not None:  # as the JSON key: explicit keys override the preset
-            if preset not in SENSOR_PRESETS:
+            if not isinstance(preset, str) or preset not in SENSOR_PRESETS:
                 raise ValueError(
                     f"rig key 'sensor' must be one of {sorted(SENSOR_PRESETS)}, got "
                     f"{preset!r}"
@@ -537,14 +537,6 @@ class Rig(eqx.Module):
     def from_dict(cls, data: Any) -> Rig:
         if not isinstance(data, dict):
             raise ValueError("a rig file must hold a JSON object")
-        preset = data.get("sensor")
-        if preset is not None:
-            if preset not in SENSOR_PRESETS:
-                raise ValueError(
-                    f"rig key 'sensor' must be one of {sorted(SENSOR_PRESETS)}, got "
-                    f"{preset!r}"
-                )
-            data = {**SENSOR_PRESETS[preset], **data}
         unknown = sorted(
             set(data) - set(DEFAULTS) - {"$schema", "comment", "sensor", "calibration"}
         )
@@ -552,7 +544,8 @@ class Rig(eqx.Module):
             raise ValueError(
                 f"unknown rig key(s) {unknown}; known keys: {sorted(DEFAULTS)}"
             )
-        data = {k: v for k, v in data.items() if k in DEFAULTS}
+        # The constructor applies a `sensor` preset (explicit keys override it).
+        data = {k: v for k, v in data.items() if k in DEFAULTS or k == "sensor"}
         return cls(**data)
 
     @classmethod
