@@ -61,26 +61,69 @@ def lit_mask(x, y, t_us, t_start_us, period, lo_col, hi_col, width, n_pix):
     return inside, outside
 
 
+#: Pixels per block of :func:`pixel_lists`' partition pass (2^10: a block's events
+#: fit in a core's L2 cache, the ~900 blocks' write positions in L1).
+LIST_BLOCK_SHIFT = 10
+
+
 @njit
 @no_type_check
 def pixel_lists(x, y, t_us, p, width, n_pix, t_start_us, centre):
-    """:func:`._pixels.pixel_lists` in two passes (count per pixel, then fill each
-    pixel's list in time order) instead of an index sort followed by gathers."""
+    """:func:`._pixels.pixel_lists` without an index sort: one pass counts the
+    events per pixel, one distributes them (stably) to blocks of `2^LIST_BLOCK_SHIFT`
+    consecutive pixels, and one per block puts each event at its pixel's next slot.
+
+    A sweep's events at any moment come from all over the sensor (each column sees the
+    whole rainbow), so placing them straight into their pixels' lists writes all over
+    the output — a cache miss per event (1280x720 sweep, 25 M events: 1.2 s of the
+    fill alone). Through the blocks both placing passes write to a few thousand
+    sequential streams or into one cached block."""
+    n = x.size
     counts = np.zeros(n_pix, np.int64)
-    for i in range(x.size):
+    for i in range(n):
         counts[np.int64(y[i]) * width + np.int64(x[i])] += 1
     starts = np.empty(n_pix, np.int64)
     acc = 0
     for q in range(n_pix):
         starts[q] = acc
         acc += counts[q]
-    pos = starts.copy()
-    t_out = np.empty(x.size, np.float64)
-    s_out = np.empty(x.size, np.int8)
-    for i in range(x.size):
+    shift = LIST_BLOCK_SHIFT
+    n_blocks = (n_pix + (1 << shift) - 1) >> shift
+    edge = np.empty(n_blocks + 1, np.int64)  # where each block's events start
+    for b in range(n_blocks):
+        edge[b] = starts[b << shift]
+    edge[n_blocks] = n
+    longest = 0
+    for b in range(n_blocks):
+        longest = max(longest, edge[b + 1] - edge[b])
+    # Pass 2: events to their blocks, in time order within a block.
+    fill = edge[:n_blocks].copy()
+    t_out = np.empty(n, np.float64)
+    s_out = np.empty(n, np.int8)
+    local = np.empty(n, np.uint16)
+    for i in range(n):
         q = np.int64(y[i]) * width + np.int64(x[i])
-        j = pos[q]
-        pos[q] = j + 1
+        b = q >> shift
+        j = fill[b]
+        fill[b] = j + 1
         t_out[j] = np.float64(np.int64(t_us[i]) - t_start_us) + centre
         s_out[j] = 2 * np.int8(p[i]) - 1
+        local[j] = q - (b << shift)
+    # Pass 3: within each block, each event to its pixel's next slot.
+    pos = starts.copy()
+    tmp_t = np.empty(longest, np.float64)
+    tmp_s = np.empty(longest, np.int8)
+    for b in range(n_blocks):
+        lo = edge[b]
+        m = edge[b + 1] - lo
+        for k in range(m):
+            tmp_t[k] = t_out[lo + k]
+            tmp_s[k] = s_out[lo + k]
+        base = b << shift
+        for k in range(m):
+            q = base + np.int64(local[lo + k])
+            j = pos[q]
+            pos[q] = j + 1
+            t_out[j] = tmp_t[k]
+            s_out[j] = tmp_s[k]
     return counts, starts, t_out, s_out
