@@ -157,6 +157,36 @@ def test_select_sweeps():
     ] == 4
 
 
+def test_select_sweeps_boundaries_match_the_per_event_sweep_index():
+    # select_sweeps finds each sweep's first event by binary search; the sweeps and
+    # their counts must be those of floor((t - t0) / P) of every event, also with
+    # events exactly on a boundary, repeated timestamps and negative sweeps.
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        p, t0 = rng.uniform(100, 5000), int(rng.integers(-5000, 5000))
+        t = rng.integers(t0 - int(3 * p), t0 + int(rng.integers(1, 40) * p),
+                         int(rng.integers(1, 2000)))  # fmt: skip
+        t = np.repeat(t, rng.integers(1, 4, t.size))
+        t = np.sort(np.concatenate([t, np.floor(t0 + np.arange(-2, 8) * p)])).astype(
+            np.int64
+        )
+        k = np.floor((t - t0) / float(p)).astype(np.int64)
+        ks, counts = np.unique(k, return_counts=True)
+        lit = counts >= 0.5 * np.median(counts)
+        runs = []  # (length, -first index) of each run of consecutive lit sweeps
+        i = 0
+        while i < ks.size:
+            j = i
+            while lit[i] and j + 1 < ks.size and lit[j + 1] and ks[j + 1] == ks[j] + 1:
+                j += 1
+            if lit[i]:
+                runs.append((j - i + 1, -i))
+            i = j + 1
+        n, first = max(runs)
+        n = min(n, 32)
+        assert select_sweeps(t, t0, p) == (int(ks[-first]), n, ks.size - n)
+
+
 def _raw_with_header(src: Path, dst: Path, width: int, height: int, data=b""):
     reader = EventReader(src)
     body = src.read_bytes()[reader.data_offset :]

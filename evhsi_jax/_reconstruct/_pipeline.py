@@ -128,10 +128,21 @@ def select_sweeps(
     """
     if t_us.size == 0:
         return 0, 1, 0
-    k = np.floor((t_us - t_start_us) / float(period_us)).astype(np.int64)
-    starts = np.flatnonzero(np.diff(k, prepend=k[0] - 1))  # k is sorted
-    ks = k[starts]
-    counts = np.diff(np.append(starts, k.size))
+
+    def sweep_of(t):  # the sweep index of a time (non-decreasing in t)
+        return np.floor((t - t_start_us) / float(period_us)).astype(np.int64)
+
+    # Where each sweep's events start: a binary search per sweep on the sorted times
+    # (all sweeps at once), not the sweep index of every event.
+    n_ev = t_us.size
+    js = np.arange(sweep_of(t_us[0]), sweep_of(t_us[-1]) + 1)
+    lo, hi = np.zeros(js.size, np.int64), np.full(js.size, n_ev, np.int64)
+    while np.any(lo < hi):
+        mid = (lo + hi) // 2
+        before = sweep_of(t_us[np.minimum(mid, n_ev - 1)]) < js
+        lo, hi = np.where(before & (lo < hi), mid + 1, lo), np.where(before, hi, mid)
+    counts = np.diff(np.append(lo, n_ev))
+    ks, counts = js[counts > 0], counts[counts > 0]
     lit = counts >= rel * np.median(counts)
     best = (0, -1)  # (length, first index into ks)
     i = 0
