@@ -14,9 +14,12 @@ of `--repeats` warm runs in this process after one cold run (compilation):
   jitter 5 µs: weighted rows, Huber reweighting) on the same events;
 - accuracy: SAM/PSNR to the truth, and the float32 cube against a float64 solve of
   the same events (share of pixels within 0.1° SAM);
+- the device work of the ideal path with other batch sizes (`--batch-variants`,
+  `CHUNKxSUB,...`: does a larger or smaller step fill the device better?);
 - the device's float32 matmul rate (8192² on a GPU, 1024² on a CPU) in the same run.
 
     python experiments/bench_gpu.py [--size 720x1280] [--repeats 3] [--out PATH]
+        [--cases ideal,noise] [--batch-variants 65536x65536,262144x262144]
 
 Writes `experiments/results/bench_gpu.json` (or `--out`). On a CPU use a small
 `--size` (the full sensor takes minutes there); the GPU figures in the README were
@@ -57,12 +60,12 @@ def timed(fn, repeats):
     return out, cold, warm
 
 
-def device_parts(events, rig, maps, repeats):
+def device_parts(events, rig, maps, repeats, chunk=None, sub=None):
     """Host (screen + group) and device (assembly + solve) time of one reconstruction,
     timed apart: the chunks' inputs are put on the device before the device clock
-    starts."""
+    starts. `chunk`, `sub`: batch sizes (default: `batch_sizes`' for the device)."""
     noise = pipe.noise_model(rig)
-    chunk, sub = pipe.batch_sizes(None, None)
+    chunk, sub = pipe.batch_sizes(chunk, sub)
 
     def host():
         screened, _, _ = pipe.screen_events(events, rig, 0, noise, 1, None)
@@ -112,20 +115,13 @@ def device_parts(events, rig, maps, repeats):
     }
 
 
-def sam_deg(a, b):
-    a = a.reshape(-1, a.shape[-1]).astype(np.float64)
-    b = b.reshape(-1, b.shape[-1]).astype(np.float64)
-    cos = np.sum(a * b, 1) / np.maximum(
-        np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1), 1e-30
-    )
-    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
-
-
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--size", default="720x1280")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--out", default="experiments/results/bench_gpu.json")
+    ap.add_argument("--cases", default="ideal,noise")
+    ap.add_argument("--batch-variants", default="")
     args = ap.parse_args()
     h, w = ev.forward.parse_size(args.size)
     dev = jax.devices()[0]
@@ -162,6 +158,8 @@ def main():
         "ideal path": rig,
         "noise path": ev.Rig(threshold_noise=0.01, timestamp_jitter_us=5.0),
     }
+    wanted = args.cases.split(",")
+    cases = {k: v for k, v in cases.items() if k.split()[0] in wanted}
     for name, cal in cases.items():
 
         def rec(cal=cal):
@@ -186,6 +184,15 @@ def main():
         print(name, {k: v for k, v in row.items() if "times" not in k}, flush=True)
         if name == "ideal path":
             cube32 = cube
+            for variant in filter(None, args.batch_variants.split(",")):
+                c, b = (int(v) for v in variant.split("x"))
+                part = device_parts(events, cal, maps, args.repeats, c, b)
+                part["device_px_per_s"] = h * w / part["device_assemble_solve_s"]
+                row.setdefault("batch_variants", {})[variant] = part
+                print("  batch", variant, {k: v for k, v in part.items()
+                                           if "times" not in k}, flush=True)  # fmt: skip
+    if "ideal path" not in report:
+        return _write(report, args.out)
     # float32 against a float64 solve of the same events (whole image).
     jax.config.update("jax_enable_x64", True)
     rig64 = rig.astype(jnp.float64)
@@ -193,7 +200,7 @@ def main():
     cube64 = ev.reconstruct(events, rig64, threshold_on_map=maps[0],
                             threshold_off_map=maps[1])  # fmt: skip
     t64 = time.perf_counter() - t
-    d = sam_deg(cube32, cube64)
+    d = ev.metrics.sam_map_deg(cube32, cube64)
     report["float64_check"] = {
         "seconds_cold": t64,
         "share_within_0.1deg": float(np.mean(d <= 0.1)),
@@ -202,7 +209,11 @@ def main():
         "float64_sam_deg": ev.evaluate(cube64, truth)["sam_deg"],
     }
     print("float64", report["float64_check"], flush=True)
-    out = Path(args.out)
+    _write(report, args.out)
+
+
+def _write(report, path):
+    out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(report, indent=2))
     print("wrote", out)

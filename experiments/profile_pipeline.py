@@ -13,6 +13,10 @@ sensor, nominal thresholds, float32, on JAX's default device. Timed, each the me
 - the same run's float32 matmul GFLOP/s (`_common.matmul_gflops`).
 
     python experiments/profile_pipeline.py [--size 96x144] [--repeats 3]
+        [--host-backends numpy,numba]
+
+Every device stage is traced under the reconstruction's matmul precision
+(`_pipeline.MATMUL_PRECISION`: full float32 on a GPU, as `reconstruct` runs them).
 
 Prints one JSON object (nothing is written).
 """
@@ -56,6 +60,11 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--size", default="96x144")
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument(
+        "--host-backends", default="numpy,numba",
+        help="host bookkeeping timed with these (numpy: the reference, slow on large "
+        "captures)",
+    )  # fmt: skip
     args = ap.parse_args()
     h, w = ev.forward.parse_size(args.size)
     rig = ev.Rig()
@@ -63,7 +72,8 @@ def main():
     chunk, sub = pipe.batch_sizes(None, None)
     out = {"size": [h, w], "events": len(events), "batch_sizes": [chunk, sub]}
     out["matmul_gflops"] = matmul_gflops()
-    for backend in ("numpy", "numba") if numba_available() else ("numpy",):
+    wanted = args.host_backends.split(",")
+    for backend in [b for b in wanted if b != "numba" or numba_available()]:
         with use_backend(backend):
             screen = median_time(
                 lambda: pipe.screen_events(events, rig, 0, None, 1, None)[2],
@@ -100,11 +110,15 @@ def main():
         def one(p):
             return pixel_system(rig, table, cfg, p, 1, return_rows=True)
 
-        return jax.lax.map(jax.vmap(one), split(px, sub))
+        with jax.default_matmul_precision(pipe.MATMUL_PRECISION):
+            return jax.lax.map(jax.vmap(one), split(px, sub))
 
     @eqx.filter_jit
     def gram(r):
-        return jax.lax.map(jax.vmap(lambda one: system_from_rows(cfg, one)[:2]), r)
+        with jax.default_matmul_precision(pipe.MATMUL_PRECISION):
+            return jax.lax.map(
+                jax.vmap(lambda one: system_from_rows(cfg, one)[:2]), r
+            )
 
     @jax.jit
     def solve(q, v):

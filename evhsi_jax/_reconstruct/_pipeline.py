@@ -715,7 +715,10 @@ def screen_events(
     margin = 200.0 + 5.0 * sig_t + min(3.0 * d_base, 5000.0)
     if margin_us is not None:
         margin = max(margin, float(margin_us))
-    pix = events.y.astype(np.int64) * w + events.x
+
+    def flat_pixel():
+        return events.y.astype(np.int64) * w + events.x
+
     if use_numba():  # one pass (the NumPy code below is the reference)
         from ._group_jit import lit_mask
 
@@ -733,9 +736,9 @@ def screen_events(
             | ((local + period >= lo) & (local + period <= hi))
             | ((local - period >= lo) & (local - period <= hi))
         )
-        outside = np.bincount(pix[~inside], minlength=h * w)
+        outside = np.bincount(flat_pixel()[~inside], minlength=h * w)
     hot |= (outside >= 2) & (outside >= 2 * sweeps)
-    keep = inside & ~hot[pix]
+    keep = inside & ~hot[flat_pixel()] if hot.any() else inside
     dropped = int(keep.size - keep.sum())
     if dropped:
         events = events.take(keep)
