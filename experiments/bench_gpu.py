@@ -8,8 +8,11 @@ of `--repeats` warm runs in this process after one cold run (compilation):
 
 - `simulate`: `ev.simulate` of the sweep (events back on the host);
 - `reconstruct`: the whole `ev.reconstruct` call (events in host memory → cube in host
-  memory), and its parts: screening + per-pixel grouping on the host, and the device
-  work (assembly + solve of every chunk, inputs already on the device);
+  memory; on an accelerator the events are grouped by pixel there,
+  `_pipeline.DEVICE_GROUPING`), the same call with the host's grouping, and its
+  parts: screening on the host, grouping on the host (numba) or on the device
+  (`DeviceLists`: transfer, sort, batches), and the device work (assembly + solve of
+  every chunk, inputs already on the device);
 - the same with the noise-aware path (a calibration saying threshold noise 0.01 and
   jitter 5 µs: weighted rows, Huber reweighting) on the same events;
 - accuracy: SAM/PSNR to the truth, and the float32 cube against a float64 solve of
@@ -50,7 +53,12 @@ import evhsi_jax as ev
 from evhsi_jax._model import band_table
 from evhsi_jax._reconstruct import _pipeline as pipe
 from evhsi_jax._reconstruct import _solvers
-from evhsi_jax._reconstruct._pixels import PixelEvents, group_pixels
+from evhsi_jax._reconstruct._pixels import (
+    DeviceLists,
+    PixelEvents,
+    bucket_plan,
+    group_pixels,
+)
 
 
 def timed(fn, repeats):
@@ -81,6 +89,27 @@ def device_parts(events, rig, maps, repeats, chunk=None, sub=None):
         )  # fmt: skip
 
     (batches, _, _), _, host_t = timed(host, repeats)
+    screened = pipe.screen_events(events, rig, 0, noise, 1, None)[0]
+    _, _, screen_t = timed(
+        lambda: pipe.screen_events(events, rig, 0, noise, 1, None), repeats
+    )
+    dtype = np.dtype(rig.fwhm_nm.dtype)
+    z = np.zeros(events.width * events.height)
+    per_pixel = jax.device_put(
+        tuple(
+            a.astype(dtype)
+            for a in (z, np.asarray(rig.column_offsets(events.width)), *maps)
+        )
+    )  # fmt: skip
+    per_pixel = tuple(a.reshape(-1) for a in per_pixel)
+
+    def device_grouping():  # what reconstruct does on an accelerator
+        lists = DeviceLists(screened, 0)
+        plan = bucket_plan(lists.counts, chunk, sub, chunk // 4)
+        out = [lists.batch(sel, k, size, *per_pixel, dtype) for sel, k, size in plan]
+        return jax.block_until_ready(out)
+
+    _, _, dev_group_t = timed(device_grouping, repeats)
     dtype = rig.fwhm_nm.dtype
     offs = np.asarray(rig.column_offsets(events.width), np.float64)
     on, off = (np.asarray(m, np.float64).reshape(-1) for m in maps)
@@ -114,6 +143,8 @@ def device_parts(events, rig, maps, repeats, chunk=None, sub=None):
     outs, cold, dev_t = timed(device, repeats)
     return {
         "host_screen_group_s": statistics.median(host_t),
+        "host_screen_s": statistics.median(screen_t),
+        "device_group_s": statistics.median(dev_group_t),
         "device_assemble_solve_s": statistics.median(dev_t),
         "device_cold_s": cold,
         "device_times_s": dev_t,
@@ -195,6 +226,14 @@ def main():
         print(name, {k: v for k, v in row.items() if "times" not in k}, flush=True)
         if name == "ideal path":
             cube32 = cube
+            if pipe.DEVICE_GROUPING == "auto" and jax.default_backend() != "cpu":
+                pipe.DEVICE_GROUPING = False  # the whole call with the host's grouping
+                cube_h, _, warm_h = timed(rec, args.repeats)
+                pipe.DEVICE_GROUPING = "auto"
+                row["host_grouping_median_s"] = statistics.median(warm_h)
+                row["host_grouping_same_cube"] = bool(np.array_equal(cube_h, cube))
+                print("  whole call with host grouping", statistics.median(warm_h),
+                      "same cube:", row["host_grouping_same_cube"], flush=True)  # fmt: skip
             for variant in filter(None, args.batch_variants.split(",")):
                 c, b = (int(v) for v in variant.split("x"))
                 part = device_parts(events, cal, maps, args.repeats, c, b)

@@ -25,7 +25,7 @@ from .._model import Calibration, EventStream, Rig, band_table
 from . import _solvers
 from ._deblur import deblur_cube
 from ._fused import FusedProblem, fused_supported, solve_fused
-from ._pixels import PixelEvents, group_pixels, pixel_lists
+from ._pixels import DeviceLists, PixelEvents, bucket_plan, group_pixels, pixel_lists
 from ._problem import ProblemConfig, lit_interval_us, pixel_system, system_from_rows
 
 __all__ = ["SolverSpec", "SOLVERS", "reconstruct", "ReconstructionInfo", "solver_spec"]
@@ -555,9 +555,23 @@ def reconstruct(
     # A bucket's last chunk is padded to sub × 2^j (small images and buckets pad
     # little); a bucket of fewer than a quarter chunk of pixels joins the next one
     # (one compiled shape less for a little padding).
+    on_device = (
+        not fused
+        and mesh is None
+        and (
+            DEVICE_GROUPING is True
+            or (DEVICE_GROUPING == "auto" and shard.device_platform(None) != "cpu")
+        )
+        and DeviceLists.fits(screened, t_start_us)
+    )
+    plan, lists, batches = [], None, []
     if fused:
         lists = pixel_lists(screened, t_start_us)
-        batches, counts = [], lists[0]
+        counts = lists[0]
+    elif on_device:  # sorted and cut into batches where the solve runs
+        lists = DeviceLists(screened, t_start_us)
+        counts = lists.counts
+        plan = bucket_plan(counts, chunk, sub, chunk // 4)
     else:
         batches, counts, _ = group_pixels(
             screened,
@@ -595,15 +609,26 @@ def reconstruct(
             rig, table, cfg, spec, sweeps, lists, lead, offsets_all, thr_on, thr_off,
             cube, kkt_all, threads, bar.update, noise,
         )  # fmt: skip
-    for b in batches:
-        valid = b.pixel >= 0
-        pix = np.where(valid, b.pixel, 0)
-        # Carried references: shift each pixel's clock to start at its reference.
-        d = np.where(valid, lead[pix], 0.0)
-        px = _device_pixels(
-            b.t_us, b.polarity, b.mask, pix, b.column, d, offsets_all, thr_on,
-            thr_off, np_dtype,
-        )  # fmt: skip
+
+    def chunks():  # (flat pixel index per row, −1 for padding; the batch on the device)
+        if plan:
+            per_pixel = jax.device_put(
+                tuple(a.astype(np_dtype) for a in (lead, offsets_all, thr_on, thr_off))
+            )
+            for sel, k, size in plan:
+                yield lists.batch(sel, k, size, *per_pixel, np_dtype)
+        for b in batches:
+            valid = b.pixel >= 0
+            pix = np.where(valid, b.pixel, 0)
+            # Carried references: shift each pixel's clock to start at its reference.
+            d = np.where(valid, lead[pix], 0.0)
+            yield b.pixel, _device_pixels(
+                b.t_us, b.polarity, b.mask, pix, b.column, d, offsets_all, thr_on,
+                thr_off, np_dtype,
+            )  # fmt: skip
+
+    for pixel, px in chunks():
+        valid = pixel >= 0
         x, kkt = solve(rig, table, cfg, spec, sub, px, sweeps, noise_j)
         x, kkt = np.asarray(x), np.asarray(kkt)
         failed = valid & ~np.all(np.isfinite(x), axis=1)
@@ -614,8 +639,8 @@ def reconstruct(
             x[idx], kkt[idx] = _solve_robust_at(
                 rig, table, cfg, spec, px, idx, sweeps, noise_j
             )
-        cube[b.pixel[valid]] = x[valid]
-        kkt_all[b.pixel[valid]] = kkt[valid]
+        cube[pixel[valid]] = x[valid]
+        kkt_all[pixel[valid]] = kkt[valid]
         bar.update(int(valid.sum()))
     bar.close()
     bad = ~np.isfinite(cube)
@@ -648,6 +673,14 @@ def reconstruct(
 
 
 BACKENDS = ("auto", "jax", "fused")
+
+#: Where the JAX backend sorts the events by pixel and cuts the padded batches:
+#: `"auto"` on the device when it is an accelerator (:class:`._pixels.DeviceLists`;
+#: the host's per-event passes cost several times a GPU's whole solve), on the host
+#: (numba, :func:`._pixels.group_pixels`) on a CPU or a device mesh; `True` / `False`
+#: force it (tests). The same batches either way; the cube is bit for bit the same
+#: without carried references (tests/reconstruction/test_reconstruct.py).
+DEVICE_GROUPING = "auto"
 
 
 def _solve_fused_all(

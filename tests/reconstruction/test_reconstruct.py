@@ -115,6 +115,41 @@ def test_chunking_does_not_change_the_result():
     np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7)
 
 
+def test_device_grouping_gives_the_host_batches(capture, monkeypatch):
+    # The accelerator's grouping (events sorted by pixel and batches gathered on the
+    # device) must hand the solve the very inputs of the host grouping: the same
+    # cube bit for bit, over several buckets and chunks; with carried references
+    # (a float32 clock shift) within a rounding.
+    from evhsi_jax._reconstruct import _pipeline, _pixels
+
+    rig, _, events, info = capture
+    kw = dict(threshold_on_map=info.threshold_on, threshold_off_map=info.threshold_off,
+              backend="jax", chunk_pixels=32, sub_batch=8, return_info=True)  # fmt: skip
+    calls = []
+    real = _pixels.DeviceLists.batch
+    monkeypatch.setattr(_pixels.DeviceLists, "batch",
+                        lambda self, *a: calls.append(a[1]) or real(self, *a))  # fmt: skip
+    cubes, infos = [], []
+    rng = np.random.default_rng(0)
+    t0 = float(events.trigger_t_us[0])
+    ref = t0 - rng.uniform(0.0, float(rig.period_us), SIZE)
+    ref[rng.random(SIZE) < 0.3] = np.nan
+    for refs in (None, ref):
+        for where in (False, True):
+            monkeypatch.setattr(_pipeline, "DEVICE_GROUPING", where)
+            cube, inf = ev.reconstruct(events, rig, reference_us=refs, **kw)
+            cubes.append(cube)
+            infos.append(inf)
+    assert len(set(calls)) >= 2  # the device path ran, with several bucket sizes
+    np.testing.assert_array_equal(cubes[0], cubes[1])
+    np.testing.assert_array_equal(infos[0].events, infos[1].events)
+    np.testing.assert_array_equal(infos[0].kkt, infos[1].kkt)
+    assert not np.array_equal(cubes[0], cubes[2])  # the references changed the answer
+    # float32 rounding of the shifted times, through an ill-conditioned float32 solve
+    assert ev.metrics.sam_map_deg(cubes[2], cubes[3]).max() < 0.05
+    np.testing.assert_allclose(cubes[2], cubes[3], atol=1e-3)
+
+
 def test_no_recompilation_on_second_call(capture):
     rig, _, events, _ = capture
     ev.reconstruct(events, rig)
