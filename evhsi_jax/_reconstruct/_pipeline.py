@@ -627,9 +627,18 @@ def reconstruct(
                 thr_off, np_dtype,
             )  # fmt: skip
 
+    # With the device's grouping the answers are placed into a cube on the device
+    # too, and it comes back once (not chunk by chunk into the host's cube).
+    held = jax.device_put((cube, kkt_all)) if plan else None
     for pixel, px in chunks():
         valid = pixel >= 0
         x, kkt = solve(rig, table, cfg, spec, sub, px, sweeps, noise_j)
+        if held is not None:
+            pix_dev = jax.device_put(pixel.astype(np.int32))
+            if not bool(_any_failed(x, pix_dev)):
+                held = _place(*held, pix_dev, x, kkt)
+                bar.update(int(valid.sum()))
+                continue
         x, kkt = np.asarray(x), np.asarray(kkt)
         failed = valid & ~np.all(np.isfinite(x), axis=1)
         if failed.any() and spec.name not in ("svd", "unconstrained"):
@@ -639,10 +648,15 @@ def reconstruct(
             x[idx], kkt[idx] = _solve_robust_at(
                 rig, table, cfg, spec, px, idx, sweeps, noise_j
             )
-        cube[pixel[valid]] = x[valid]
-        kkt_all[pixel[valid]] = kkt[valid]
+        if held is not None:
+            held = _place(*held, pix_dev, *jax.device_put((x, kkt)))
+        else:
+            cube[pixel[valid]] = x[valid]
+            kkt_all[pixel[valid]] = kkt[valid]
         bar.update(int(valid.sum()))
     bar.close()
+    if held is not None:
+        cube, kkt_all = (np.array(a) for a in held)
     bad = ~np.isfinite(cube)
     if bad.any():  # never hand out NaN: the no-event answer, flagged (kkt = inf)
         cube[bad] = _no_event_answer(rig, m)
@@ -673,6 +687,22 @@ def reconstruct(
 
 
 BACKENDS = ("auto", "jax", "fused")
+
+
+@jax.jit
+def _any_failed(x, pixel):
+    """Whether a real pixel (index ≥ 0) of a chunk has a non-finite answer."""
+    return jnp.any((pixel >= 0) & ~jnp.all(jnp.isfinite(x), axis=1))
+
+
+@functools.partial(jax.jit, donate_argnums=(0, 1))
+def _place(cube, kkt_all, pixel, x, kkt):
+    """The chunk's answers into the device's cube (padding rows, index −1, dropped)."""
+    at = jnp.where(pixel >= 0, pixel, cube.shape[0])
+    return (
+        cube.at[at].set(x.astype(cube.dtype), mode="drop"),
+        kkt_all.at[at].set(kkt.astype(kkt_all.dtype), mode="drop"),
+    )
 
 #: Where the JAX backend sorts the events by pixel and cuts the padded batches:
 #: `"auto"` on the device when it is an accelerator (:class:`._pixels.DeviceLists`;
