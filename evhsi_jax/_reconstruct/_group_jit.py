@@ -35,13 +35,12 @@ def fill_slots(sel, starts, use, t_sorted, s_sorted, tt, pp, mask):
 
 @njit
 @no_type_check
-def lit_mask(x, y, t_us, t_start_us, period, lo_col, hi_col, width, n_pix):
+def lit_mask(x, t_us, t_start_us, period, lo_col, hi_col, inside):
     """Per event, whether its time modulo the period falls in its column's interval
-    `[lo_col, hi_col]` (which may wrap around the period), and per pixel the number of
-    events that do not: the screening of :func:`._pipeline.screen_events` in one
-    pass (NumPy's floating remainder, to the bit: fmod, then the divisor's sign)."""
-    inside = np.empty(x.size, np.bool_)
-    outside = np.zeros(n_pix, np.int64)
+    `[lo_col, hi_col]` (which may wrap around the period), into `inside`: the
+    screening of :func:`._pipeline.screen_events` in one pass (NumPy's floating
+    remainder, to the bit: fmod, then the divisor's sign). Releases the GIL: the
+    caller runs slices of the events on several threads."""
     for i in range(x.size):
         c = np.int64(x[i])
         r = np.float64(t_us[i]) - np.float64(t_start_us)
@@ -50,15 +49,11 @@ def lit_mask(x, y, t_us, t_start_us, period, lo_col, hi_col, width, n_pix):
             local += period
         lo = lo_col[c]
         hi = hi_col[c]
-        ok = (
+        inside[i] = (
             (local >= lo and local <= hi)
             or (local + period >= lo and local + period <= hi)
             or (local - period >= lo and local - period <= hi)
         )
-        inside[i] = ok
-        if not ok:
-            outside[np.int64(y[i]) * width + c] += 1
-    return inside, outside
 
 
 #: Pixels per block of :func:`pixel_lists`' partition pass (2^10: a block's events

@@ -8,6 +8,7 @@ bounded by the chunk.
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import functools
 import math
@@ -749,6 +750,10 @@ def _solve_fused_all(
     kkt_all[sel] = kkt
 
 
+#: Events per thread task of the numba screening (slices run on every usable core).
+SCREEN_SLICE = 1 << 21
+
+
 def screen_events(
     events, rig, t_start_us, noise, sweeps, hot_map=None, *, margin_us=None
 ):
@@ -785,10 +790,25 @@ def screen_events(
     if use_numba():  # one pass (the NumPy code below is the reference)
         from ._group_jit import lit_mask
 
-        inside, outside = lit_mask(
-            events.x, events.y, events.t_us, np.int64(t_start_us), period,
-            t_arrive - margin, t_leave + margin, w, h * w,
-        )  # fmt: skip
+        inside = np.empty(len(events), bool)
+        lo_col, hi_col = t_arrive - margin, t_leave + margin
+
+        def part(i0):
+            i1 = min(i0 + SCREEN_SLICE, inside.size)
+            lit_mask(events.x[i0:i1], events.t_us[i0:i1], np.int64(t_start_us),
+                     period, lo_col, hi_col, inside[i0:i1])  # fmt: skip
+
+        starts = range(0, inside.size, SCREEN_SLICE)
+        if len(starts) > 1 and shard.usable_cores() > 1:
+            with concurrent.futures.ThreadPoolExecutor(shard.usable_cores()) as pool:
+                list(pool.map(part, starts))
+        else:
+            for i0 in starts:
+                part(i0)
+        out = ~inside
+        outside = np.bincount(
+            events.y[out].astype(np.int64) * w + events.x[out], minlength=h * w
+        )
     else:
         x = events.x.astype(np.int64)
         local = np.mod(events.t_us.astype(np.float64) - t_start_us, period)

@@ -219,11 +219,16 @@ def test_grouping_kernels_match_the_numpy_reference(capture, max_events):
             np.testing.assert_array_equal(x, y, err_msg=f)
 
 
-def test_screening_kernel_matches_the_numpy_reference():
+@pytest.mark.parametrize("slice_events", [1 << 21, 97])
+def test_screening_kernel_matches_the_numpy_reference(slice_events, monkeypatch):
     # Background events, hot pixels and jitter, recording started mid-period: the
-    # numba screening must keep and flag exactly what the NumPy code does.
+    # numba screening must keep and flag exactly what the NumPy code does, also cut
+    # into slices screened on several threads.
     from evhsi_jax._base._numba import numba_available, use_backend
+    from evhsi_jax._reconstruct import _pipeline
     from evhsi_jax._reconstruct._pipeline import noise_model, screen_events
+
+    monkeypatch.setattr(_pipeline, "SCREEN_SLICE", slice_events)
 
     if not numba_available():
         pytest.skip("numba is not importable here")
