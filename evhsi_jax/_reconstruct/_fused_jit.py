@@ -136,132 +136,39 @@ def _dot1(a, ia, v, k0, k1):
 
 @njit(inline=True)
 @no_type_check
-def _factor_row(qm, first, free, lf, inv, i):
-    """Row i of the envelope Cholesky (rows above it done); False when its pivot is
-    not positive."""
-    fi = first[i]
-    li = lf[i]
-    qi = qm[i]
-    if not free[i]:
-        for j in range(_u(fi), _u(i)):
-            li[j] = 0.0
-        inv[i] = 1.0
-        return True
-    d = qi[i]
-    for j in range(fi, i):
-        if free[j]:
-            lj = lf[j]
-            s = qi[j]
-            for k in range(_u(max(fi, first[j])), _u(j)):
-                s -= li[k] * lj[k]
-            v = s * inv[j]
-            li[j] = v
-            d -= v * v
-        else:
-            li[j] = 0.0
-    if not d > 0.0:
-        return False
-    inv[i] = 1.0 / math.sqrt(d)
-    return True
-
-
-@njit(inline=True)
-@no_type_check
-def _factor_pair(qm, first, free, lf, inv, a):
-    """Rows a and b = a + 1 (both free) of the envelope Cholesky together: their dot
-    products against each earlier row j run as two independent chains over the same
-    `lf[j]` (one chain waits on its floating-point latency; two overlap). The same
-    operations in the same order per row as :func:`_factor_row`: bit-identical."""
-    b = a + 1
-    fa = first[a]
-    fb = first[b]
-    la = lf[a]
-    lb = lf[b]
-    qa = qm[a]
-    qb = qm[b]
-    da = qa[a]
-    db = qb[b]
-    for j in range(min(fa, fb), a):
-        in_a = j >= fa
-        in_b = j >= fb
-        if not free[j]:
-            if in_a:
-                la[j] = 0.0
-            if in_b:
-                lb[j] = 0.0
-            continue
-        lj = lf[j]
-        fj = first[j]
-        if in_a and in_b:
-            k0a = max(fa, fj)
-            k0b = max(fb, fj)
-            k0 = max(k0a, k0b)
-            sa = qa[j]
-            sb = qb[j]
-            for k in range(_u(k0a), _u(k0)):
-                sa -= la[k] * lj[k]
-            for k in range(_u(k0b), _u(k0)):
-                sb -= lb[k] * lj[k]
-            for k in range(_u(k0), _u(j)):
-                sa -= la[k] * lj[k]
-                sb -= lb[k] * lj[k]
-            va = sa * inv[j]
-            vb = sb * inv[j]
-            la[j] = va
-            lb[j] = vb
-            da -= va * va
-            db -= vb * vb
-        elif in_a:
-            sa = qa[j]
-            for k in range(_u(max(fa, fj)), _u(j)):
-                sa -= la[k] * lj[k]
-            va = sa * inv[j]
-            la[j] = va
-            da -= va * va
-        else:
-            sb = qb[j]
-            for k in range(_u(max(fb, fj)), _u(j)):
-                sb -= lb[k] * lj[k]
-            vb = sb * inv[j]
-            lb[j] = vb
-            db -= vb * vb
-    if not da > 0.0:
-        return False
-    inv[a] = 1.0 / math.sqrt(da)
-    if a >= fb:  # L[b, a], from row a just finished
-        sb = qb[a]
-        for k in range(_u(max(fb, fa)), _u(a)):
-            sb -= lb[k] * la[k]
-        vb = sb * inv[a]
-        lb[a] = vb
-        db -= vb * vb
-    if not db > 0.0:
-        return False
-    inv[b] = 1.0 / math.sqrt(db)
-    return True
-
-
-@njit(inline=True)
-@no_type_check
 def _factor(qm, first, free, lf, inv):
     """Envelope Cholesky of Q restricted to the free variables (identity rows for the
     fixed ones): L's off-diagonal into `lf` (inside the envelope), the reciprocals of
     its diagonal into `inv` (products instead of divisions); False when a pivot is not
     positive. Row by row (left-looking): each entry is one dot product of two
-    contiguous row pieces; two free rows at a time (:func:`_factor_pair`), so two
-    dot-product chains overlap (a right-looking variant with vectorised rank-1
-    updates measured no faster: the envelope's rows are short)."""
+    contiguous row pieces; consecutive dot products are independent, so the CPU
+    overlaps them (a right-looking variant with vectorised rank-1 updates measured
+    no faster: the envelope's rows are short)."""
     m = qm.shape[0]
-    i = 0
-    while i < m:
-        if i + 1 < m and free[i] and free[i + 1]:
-            if not _factor_pair(qm, first, free, lf, inv, i):
-                return False
-            i += 2
-        else:
-            if not _factor_row(qm, first, free, lf, inv, i):
-                return False
-            i += 1
+    for i in range(m):
+        fi = first[i]
+        li = lf[i]
+        qi = qm[i]
+        if not free[i]:
+            for j in range(_u(fi), _u(i)):
+                li[j] = 0.0
+            inv[i] = 1.0
+            continue
+        d = qi[i]
+        for j in range(fi, i):
+            if free[j]:
+                lj = lf[j]
+                s = qi[j]
+                for k in range(_u(max(fi, first[j])), _u(j)):
+                    s -= li[k] * lj[k]
+                v = s * inv[j]
+                li[j] = v
+                d -= v * v
+            else:
+                li[j] = 0.0
+        if not d > 0.0:
+            return False
+        inv[i] = 1.0 / math.sqrt(d)
     return True
 
 
