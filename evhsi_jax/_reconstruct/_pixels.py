@@ -274,14 +274,12 @@ class DeviceLists:
         w, h = events.width, events.height
         n = len(events)
         n_pad = 1 << max(int(n - 1).bit_length(), 10)
-        t_rel = np.zeros(n_pad, np.int32)
-        t_rel[:n] = events.t_us - t_start_us
-        x = np.zeros(n_pad, np.uint16)
-        x[:n] = events.x
-        y = np.full(n_pad, h, np.uint16)  # row h: past the last pixel, sorts last
-        y[:n] = events.y
-        p = np.zeros(n_pad, np.uint8)
-        p[:n] = events.p
+        t_rel = np.empty(n_pad, np.int32)  # (no int64 temporary: `fits` checked)
+        np.subtract(events.t_us, t_start_us, out=t_rel[:n], casting="unsafe")
+        x, y, p = (np.empty(n_pad, a.dtype) for a in (events.x, events.y, events.p))
+        x[:n], y[:n], p[:n] = events.x, events.y, events.p
+        t_rel[n:], x[n:], p[n:] = 0, 0, 0
+        y[n:] = h  # row h: past the last pixel, sorts last
         counts, starts, t_s, s_s = _sort_by_pixel(*jax.device_put((x, y, t_rel, p)), w,
                                                   w * h)  # fmt: skip
         self.counts = np.asarray(counts).astype(np.int64)
