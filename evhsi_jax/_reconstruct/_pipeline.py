@@ -131,19 +131,27 @@ def select_sweeps(
         return 0, 1, 0
 
     def sweep_of(t):  # the sweep index of a time (non-decreasing in t)
-        return np.floor((t - t_start_us) / float(period_us)).astype(np.int64)
+        return int(np.floor((t - t_start_us) / float(period_us)))
 
-    # Where each sweep's events start: a binary search per sweep on the sorted times
-    # (all sweeps at once), not the sweep index of every event.
+    # Sweep by sweep: where the next sweep with events starts, by a binary search on
+    # the sorted times (not the sweep index of every event; the empty sweeps between
+    # are skipped, so a stray timestamp far away costs nothing).
     n_ev = t_us.size
-    js = np.arange(sweep_of(t_us[0]), sweep_of(t_us[-1]) + 1)
-    lo, hi = np.zeros(js.size, np.int64), np.full(js.size, n_ev, np.int64)
-    while np.any(lo < hi):
-        mid = (lo + hi) // 2
-        before = sweep_of(t_us[np.minimum(mid, n_ev - 1)]) < js
-        lo, hi = np.where(before & (lo < hi), mid + 1, lo), np.where(before, hi, mid)
-    counts = np.diff(np.append(lo, n_ev))
-    ks, counts = js[counts > 0], counts[counts > 0]
+    ks, counts = [], []
+    i = 0
+    while i < n_ev:
+        k = sweep_of(t_us[i])
+        lo, hi = i + 1, n_ev
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if sweep_of(t_us[mid]) <= k:
+                lo = mid + 1
+            else:
+                hi = mid
+        ks.append(k)
+        counts.append(lo - i)
+        i = lo
+    ks, counts = np.asarray(ks, np.int64), np.asarray(counts)
     lit = counts >= rel * np.median(counts)
     best = (0, -1)  # (length, first index into ks)
     i = 0
@@ -465,7 +473,8 @@ def reconstruct(
     - `sub_batch`: pixels per `lax.map` step inside a chunk.
       Defaults by the device kind (:func:`batch_sizes`): 2048 / 128 on a CPU (each
       step's matrices stay in cache), 131072 / 131072 on a GPU (one step per chunk:
-      a GPU needs tens of thousands of pixels in flight).
+      a GPU needs tens of thousands of pixels in flight). On an accelerator the
+      events are sorted by pixel and cut into the chunks there (`DEVICE_GROUPING`).
     - `progress`: show a progress bar.
     - `return_info`: also return a :class:`ReconstructionInfo`.
     - `deblur`: undo the optics' blur, a Gaussian PSF of the rig's `psf_sigma_px`
