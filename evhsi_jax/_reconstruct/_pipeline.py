@@ -639,7 +639,12 @@ def reconstruct(
 
     # With the device's grouping the answers are placed into a cube on the device
     # too, and it comes back once (not chunk by chunk into the host's cube).
-    held = jax.device_put((cube, kkt_all)) if plan else None
+    held = None
+    if plan:  # made there, not sent over (a 1280x720 cube is 270 MB)
+        held = (
+            jnp.full(cube.shape, _no_event_answer(rig, m), jnp.float32),
+            jnp.full(kkt_all.shape, jnp.nan, jnp.float32),
+        )
     for pixel, px in chunks():
         valid = pixel >= 0
         x, kkt = solve(rig, table, cfg, spec, sub, px, sweeps, noise_j)
@@ -713,6 +718,7 @@ def _place(cube, kkt_all, pixel, x, kkt):
         cube.at[at].set(x.astype(cube.dtype), mode="drop"),
         kkt_all.at[at].set(kkt.astype(kkt_all.dtype), mode="drop"),
     )
+
 
 #: Where the JAX backend sorts the events by pixel and cuts the padded batches:
 #: `"auto"` on the device when it is an accelerator (:class:`._pixels.DeviceLists`;
