@@ -330,6 +330,8 @@ def _sort_by_pixel(x, y, t_rel, p, width, n_pix):
 @functools.partial(jax.jit, static_argnums=(9, 10, 11))
 def _gather_batch(t_sorted, s_sorted, starts, counts, pixel, lead, offsets, thr_on,
                   thr_off, k, width, dtype):  # fmt: skip
+    """The :class:`PixelEvents` of the rows `pixel` (−1: padding) with `k` slots, as
+    `_pipeline._device_pixels` makes them from the host's batch."""
     valid = pixel >= 0
     p = jnp.where(valid, pixel, 0)
     slot = jnp.arange(k)
