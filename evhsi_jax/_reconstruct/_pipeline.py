@@ -581,7 +581,7 @@ def reconstruct(
     elif on_device:  # sorted and cut into batches where the solve runs
         lists = DeviceLists(screened, t_start_us)
         counts = lists.counts
-        plan = bucket_plan(counts, chunk, sub, chunk // 4)
+        plan = bucket_plan(counts, chunk, sub, chunk // 4)  # (mesh is None: n_dev 1)
     else:
         batches, counts, _ = group_pixels(
             screened,
@@ -799,8 +799,8 @@ def screen_events(
     if margin_us is not None:
         margin = max(margin, float(margin_us))
 
-    def flat_pixel():
-        return events.y.astype(np.int64) * w + events.x
+    def flat_pixel(sel=slice(None)):  # flat index y·W + x of the events `sel`
+        return events.y[sel].astype(np.int64) * w + events.x[sel]
 
     if use_numba():  # one pass (the NumPy code below is the reference)
         from ._group_jit import lit_mask
@@ -820,10 +820,7 @@ def screen_events(
         else:
             for i0 in starts:
                 part(i0)
-        out = ~inside
-        outside = np.bincount(
-            events.y[out].astype(np.int64) * w + events.x[out], minlength=h * w
-        )
+        outside = np.bincount(flat_pixel(~inside), minlength=h * w)
     else:
         x = events.x.astype(np.int64)
         local = np.mod(events.t_us.astype(np.float64) - t_start_us, period)
@@ -834,7 +831,7 @@ def screen_events(
             | ((local + period >= lo) & (local + period <= hi))
             | ((local - period >= lo) & (local - period <= hi))
         )
-        outside = np.bincount(flat_pixel()[~inside], minlength=h * w)
+        outside = np.bincount(flat_pixel(~inside), minlength=h * w)
     hot |= (outside >= 2) & (outside >= 2 * sweeps)
     keep = inside & ~hot[flat_pixel()] if hot.any() else inside
     dropped = int(keep.size - keep.sum())

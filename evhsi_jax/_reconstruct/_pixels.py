@@ -282,8 +282,9 @@ class DeviceLists:
         y[n:] = h  # row h: past the last pixel, sorts last
         counts, starts, t_s, s_s = _sort_by_pixel(*jax.device_put((x, y, t_rel, p)), w,
                                                   w * h)  # fmt: skip
-        self.counts = np.asarray(counts).astype(np.int64)
-        self.starts, self.t_sorted, self.s_sorted = starts, t_s, s_s
+        self.counts = np.asarray(counts).astype(np.int64)  # (the host's plan)
+        self.counts_device, self.starts = counts, starts
+        self.t_sorted, self.s_sorted = t_s, s_s
         self.width = w
 
     @staticmethod
@@ -308,10 +309,6 @@ class DeviceLists:
             self.t_sorted, self.s_sorted, self.starts, self.counts_device, pixel,
             lead, offsets, thr_on, thr_off, k, self.width, np.dtype(dtype).name,
         )  # fmt: skip
-
-    @functools.cached_property
-    def counts_device(self):
-        return jax.device_put(self.counts.astype(np.int32))
 
 
 @functools.partial(jax.jit, static_argnums=(4, 5))
