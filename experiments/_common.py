@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import platform
+import statistics
 import time
 from pathlib import Path
 
@@ -15,6 +16,18 @@ import numpy as np
 import evhsi_jax as ev
 
 OUT = Path(__file__).parent / "results"
+
+
+def median_time(fn, repeats: int) -> float:
+    """Median wall time of `repeats` calls of `fn` after one untimed call (compilation),
+    each waited for (`jax.block_until_ready`; host results pass through)."""
+    jax.block_until_ready(fn())
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - t)
+    return statistics.median(times)
 
 
 def matmul_gflops(n: int = 1024, repeats: int = 5) -> float:

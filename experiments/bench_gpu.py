@@ -23,11 +23,6 @@ of `--repeats` warm runs in this process after one cold run (compilation):
 
     python experiments/bench_gpu.py [--size 720x1280] [--repeats 3] [--out PATH]
         [--cases ideal,noise] [--batch-variants 65536x65536,262144x262144]
-        [--triangular library,substitution]
-
-`--triangular`: the device work of the ideal path with each way of running the
-active-set solver's triangular solves (`_solvers.TRIANGULAR`; the first is used for
-everything else).
 
 Writes `experiments/results/bench_gpu.json` (or `--out`). On a CPU use a small
 `--size` (the full sensor takes minutes there); the GPU figures in the README were
@@ -52,7 +47,6 @@ from _common import matmul_gflops
 import evhsi_jax as ev
 from evhsi_jax._model import band_table
 from evhsi_jax._reconstruct import _pipeline as pipe
-from evhsi_jax._reconstruct import _solvers
 from evhsi_jax._reconstruct._pixels import (
     DeviceLists,
     PixelEvents,
@@ -140,7 +134,7 @@ def device_parts(events, rig, maps, repeats, chunk=None, sub=None):
         ]  # fmt: skip
         return jax.block_until_ready(outs)
 
-    outs, cold, dev_t = timed(device, repeats)
+    _, cold, dev_t = timed(device, repeats)
     return {
         "host_screen_group_s": statistics.median(host_t),
         "host_screen_s": statistics.median(screen_t),
@@ -149,7 +143,6 @@ def device_parts(events, rig, maps, repeats, chunk=None, sub=None):
         "device_cold_s": cold,
         "device_times_s": dev_t,
         "chunks": [list(p.t_us.shape) for p in pxs],
-        "x": [np.asarray(o[0]) for o in outs],  # the chunks' answers (not reported)
     }
 
 
@@ -160,10 +153,7 @@ def main():
     ap.add_argument("--out", default="experiments/results/bench_gpu.json")
     ap.add_argument("--cases", default="ideal,noise")
     ap.add_argument("--batch-variants", default="")
-    ap.add_argument("--triangular", default="library")
     args = ap.parse_args()
-    methods = args.triangular.split(",")
-    _solvers.TRIANGULAR = methods[0]
     h, w = ev.forward.parse_size(args.size)
     dev = jax.devices()[0]
     report = {
@@ -221,7 +211,6 @@ def main():
             **device_parts(events, cal, maps, args.repeats),
         }
         row["device_px_per_s"] = h * w / row["device_assemble_solve_s"]
-        x_first = row.pop("x")
         report[name] = row
         print(name, {k: v for k, v in row.items() if "times" not in k}, flush=True)
         if name == "ideal path":
@@ -237,26 +226,10 @@ def main():
             for variant in filter(None, args.batch_variants.split(",")):
                 c, b = (int(v) for v in variant.split("x"))
                 part = device_parts(events, cal, maps, args.repeats, c, b)
-                part.pop("x")
                 part["device_px_per_s"] = h * w / part["device_assemble_solve_s"]
                 row.setdefault("batch_variants", {})[variant] = part
                 print("  batch", variant, {k: v for k, v in part.items()
                                            if "times" not in k}, flush=True)  # fmt: skip
-            for method in methods[1:]:
-                _solvers.TRIANGULAR = method
-                jax.clear_caches()
-                part = device_parts(events, cal, maps, args.repeats)
-                part["device_px_per_s"] = h * w / part["device_assemble_solve_s"]
-                # Padding rows of a chunk hold NaN in both: finite entries compared.
-                diffs = [np.abs(a - b) for a, b in zip(part.pop("x"), x_first)]
-                part["max_abs_diff_vs_first"] = float(
-                    max(np.max(d, where=np.isfinite(d), initial=0.0) for d in diffs)
-                )
-                row.setdefault("triangular", {})[method] = part
-                print("  triangular", method, {k: v for k, v in part.items()
-                                               if "times" not in k}, flush=True)  # fmt: skip
-                _solvers.TRIANGULAR = methods[0]
-                jax.clear_caches()
     if "ideal path" not in report:
         return _write(report, args.out)
     # float32 against a float64 solve of the same events (whole image).

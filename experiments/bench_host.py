@@ -20,26 +20,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
-import time
 from pathlib import Path
 
 import jax.random as jr
-from _common import matmul_gflops
+from _common import matmul_gflops, median_time
 
 import evhsi_jax as ev
 from evhsi_jax._reconstruct import _pipeline as pipe
 from evhsi_jax._reconstruct._pixels import group_pixels, pixel_lists
-
-
-def median_time(fn, repeats):
-    fn()
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return statistics.median(times)
 
 
 def main():

@@ -25,14 +25,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
-import time
 
 import equinox as eqx
 import jax
 import jax.random as jr
 import numpy as np
-from _common import matmul_gflops
+from _common import matmul_gflops, median_time
 
 import evhsi_jax as ev
 from evhsi_jax._base._numba import numba_available, use_backend
@@ -44,16 +42,6 @@ from evhsi_jax._reconstruct._problem import (
     pixel_system,
     system_from_rows,
 )
-
-
-def median_time(fn, repeats):
-    jax.block_until_ready(fn())
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - t)
-    return statistics.median(times)
 
 
 def main():

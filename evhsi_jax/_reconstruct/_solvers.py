@@ -134,44 +134,9 @@ def cho_factor(q_mat: Float[Array, "m m"], robust: bool = False):
     return jax.lax.cond(ok, lambda _: c[0], shifted, None), True
 
 
-#: How the active-set solver's triangular solves run: `"library"` (XLA's triangular
-#: solve, `cho_solve`) or `"substitution"` (:func:`substitution_solve`). Read when a
-#: kernel is traced (a change needs `jax.clear_caches()`); experiments/bench_gpu.py
-#: times both on a GPU.
-TRIANGULAR = "library"
-
-
-def cho_solve(c, b):
-    """$Q^{-1} b$ from :func:`cho_factor`'s pair, by the `TRIANGULAR` method."""
-    if TRIANGULAR == "substitution":
-        return substitution_solve(c[0], b)
-    return jax.scipy.linalg.cho_solve(c, b)
-
-
-def substitution_solve(c: Float[Array, "m m"], b: Float[Array, " m"]) -> Float[Array, " m"]:
-    """$(LL^T)^{-1} b$ from the lower Cholesky factor `c` (its upper triangle is
-    ignored) by forward and back substitution, one row per step (`lax.fori_loop`):
-    under `vmap` each step is a batched dot product — the same answer as
-    `cho_solve`, written without a triangular-solve library call (an alternative for
-    a GPU, timed by `experiments/bench_gpu_linalg.py`)."""
-    m = b.shape[0]
-    low = jnp.tril(c)
-    up = low.T  # rows of Lᵀ, contiguous
-
-    def fwd(i, y):
-        return y.at[i].set((b[i] - low[i] @ y) / low[i, i])
-
-    def bwd(j, x):
-        i = m - 1 - j
-        return x.at[i].set((y[i] - up[i] @ x) / low[i, i])
-
-    y = jax.lax.fori_loop(0, m, fwd, jnp.zeros_like(b))
-    return jax.lax.fori_loop(0, m, bwd, jnp.zeros_like(b))
-
-
 def unconstrained(q_mat, q_vec, robust: bool = False) -> Float[Array, " m"]:
     """$-Q^{-1}q$ by Cholesky (no bound); `robust`: see :func:`cho_factor`."""
-    return -cho_solve(cho_factor(q_mat, robust), q_vec)
+    return -jax.scipy.linalg.cho_solve(cho_factor(q_mat, robust), q_vec)
 
 
 def reduced(q_mat, free):
@@ -185,7 +150,7 @@ def _free_solve(q_mat, q_vec, free, robust=False):
     """Minimise over the free variables with the others fixed at 0."""
     f = free.astype(q_mat.dtype)
     c = cho_factor(reduced(q_mat, free), robust)
-    return -cho_solve(c, q_vec * f) * f
+    return -jax.scipy.linalg.cho_solve(c, q_vec * f) * f
 
 
 def active_set_step(q_mat, q_vec, state, tol, robust=False):

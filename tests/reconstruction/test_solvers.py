@@ -116,21 +116,6 @@ def test_kkt_residual_detects_non_optimal_points():
         assert r_opt < 1e-9 < 1e-3 < r_bad
 
 
-@pytest.mark.parametrize("kind", ["random", "ill", "banded"])
-def test_substitution_solve_matches_cho_solve(kind):
-    # Row-by-row substitution from the lower factor (the upper triangle of
-    # cho_factor's output holds Q, which must be ignored) = Q⁻¹b, batched too.
-    with jax.enable_x64(True):
-        q_mat, q_vec = _problem(kind, 3)
-        c = _solvers.cho_factor(jnp.asarray(q_mat))[0]
-        got = np.asarray(_solvers.substitution_solve(c, jnp.asarray(q_vec)))
-        np.testing.assert_allclose(q_mat @ got, q_vec, rtol=1e-7, atol=1e-9)
-        qs = jnp.stack([jnp.asarray(q_mat), jnp.asarray(q_mat) * 2.0])
-        cs = jax.vmap(lambda q: _solvers.cho_factor(q)[0])(qs)
-        both = jax.vmap(_solvers.substitution_solve)(cs, jnp.stack([q_vec, q_vec]))
-        np.testing.assert_allclose(np.asarray(both[1]) * 2.0, got, rtol=1e-9)
-
-
 def test_unconstrained_and_svd_baselines():
     with jax.enable_x64(True):
         rng = np.random.default_rng(5)
