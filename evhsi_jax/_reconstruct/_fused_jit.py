@@ -136,6 +136,30 @@ def _dot1(a, ia, v, k0, k1):
 
 @njit(inline=True)
 @no_type_check
+def _band_dot(table, b, f, v, k0, k1):
+    """Σ_{k0 ≤ k < k1} ((1 - f) table[b, k] + f table[b + 1, k]) v[k], four partial
+    sums (the band interpolated at the fraction `f` of its table rows, against v)."""
+    t0 = table[b]
+    t1 = table[b + 1]
+    g0 = 1.0 - f
+    s0 = 0.0
+    s1 = 0.0
+    s2 = 0.0
+    s3 = 0.0
+    n4 = (k1 - k0) // 4
+    for q in range(_u(n4)):
+        k = _u(k0) + _u(4) * q
+        s0 += (t0[k] * g0 + t1[k] * f) * v[k]
+        s1 += (t0[k + _u(1)] * g0 + t1[k + _u(1)] * f) * v[k + _u(1)]
+        s2 += (t0[k + _u(2)] * g0 + t1[k + _u(2)] * f) * v[k + _u(2)]
+        s3 += (t0[k + _u(3)] * g0 + t1[k + _u(3)] * f) * v[k + _u(3)]
+    for k in range(_u(k0 + 4 * n4), _u(k1)):
+        s0 += (t0[k] * g0 + t1[k] * f) * v[k]
+    return (s0 + s1) + (s2 + s3)
+
+
+@njit(inline=True)
+@no_type_check
 def _factor(qm, first, free, lf, inv):
     """Envelope Cholesky of Q restricted to the free variables (identity rows for the
     fixed ones): L's off-diagonal into `lf` (inside the envelope), the reciprocals of
@@ -330,7 +354,7 @@ def _box_qp(qm, qv, first, free, lf, inv, x, p, gr, tol, max_iters):
 @no_type_check
 def _lowpass_rows(
     x0, tr, step, w_log, k, phase, off, par, ipar, table, span_lo, span_hi, vv, fq,
-    qpos, qi0, order, evr, evc, evlo, evhi,
+    qpos, qi0, order, evr, evc, evlo, evhi, lp_b, lp_f,
 ):  # fmt: skip
     """Event rows of the photoreceptor model linearised at `x0`
     (:func:`._problem._lowpass_rows`): the filtered $[\\log L, a/L]$ on the rig's
@@ -339,7 +363,10 @@ def _lowpass_rows(
 
     The filter $F_j = α_j F_{j-1} + (1-α_j) s_j$ runs as $F = S V$ with a running
     scale $S = \\prod α$ (renormalised before it underflows), so a step costs the
-    band's span, not M + 1; F is formed only at the grid points the queries need."""
+    band's span, not M + 1; F is formed only at the grid points the queries need,
+    over the channels the band has touched so far. What a grid point needs that does
+    not depend on the earlier ones (band, intensity, decay, logarithm) is computed
+    first, in short passes over all points, into `lp_b`/`lp_f`."""
     m = x0.size
     n = ipar[I_SAMPLES]
     period = par[P_PERIOD]
@@ -355,31 +382,54 @@ def _lowpass_rows(
         for h, t in ((0, tr[i]), (1, t_ref)):
             pos = min(max((t + phase) / dt, 0.0), g_n - 1.0)
             qpos[2 * i + h] = pos
+    g_end = 1  # F is needed up to the last query's grid point, g_end - 1
     for q in range(nq):
         qi0[q] = min(np.int64(math.floor(qpos[q])), g_n - 2)
         fq[q, :] = 0.0
+        g_end = max(g_end, qi0[q] + 2)
     order[:nq] = np.argsort(qpos[:nq], kind="mergesort")
     vv[:] = 0.0
     scale = 1.0
     pa = 0
     pb = 0
-    for j in range(g_n):
-        local = j * dt
-        local = local - period * math.floor(local / period)
-        b, f = _band_at(local - phase, phase, off, par, ntab)
-        lo = 0
-        hi = 0
+    # First what a grid point needs that does not depend on the earlier points, in
+    # short passes over all points: one point's band lookup, intensity and
+    # transcendental functions are a long chain of latencies, and in one loop with
+    # the recursion they would not overlap from one point to the next (measured: the
+    # call took twice as long). The band's table row and fraction: _band_at's
+    # arithmetic at the local time (j mod n) dt, with the reciprocals taken once.
+    inv_half = 1.0 / par[P_HALF]
+    for j in range(g_end):
+        lin = par[P_START] + par[P_SPEED] * ((j % n) * dt + off)
+        u = (lin - par[P_MID]) * inv_half
+        pos = (lin + par[P_CURV] * (1.0 - u * u) - par[P_TAB_LO]) * par[P_INV_STEP]
+        if pos < 0.0 or pos > ntab - 1:
+            lp_b[j] = -1
+            lp_f[0, j] = 0.0
+        else:
+            i0 = min(math.floor(pos), ntab - 2)
+            lp_b[j] = i0
+            lp_f[0, j] = pos - i0
+    for j in range(g_end):  # the intensity at x0
+        b = lp_b[j]
         inten = par[P_BASE_REL]
         if b >= 0:
             lo = min(span_lo[b], span_lo[b + 1])
             hi = max(span_hi[b], span_hi[b + 1])
-            t0 = table[b]
-            t1 = table[b + 1]
-            for c in range(lo, hi):
-                inten += (t0[c] * (1.0 - f) + t1[c] * f) * x0[c]
-        inten = max(inten, 0.0)
+            inten += _band_dot(table, b, lp_f[0, j], x0, lo, hi)
+        lp_f[1, j] = max(inten, 0.0)
+    for j in range(g_end):  # its decay over the step, logarithm and reciprocal
+        inten = lp_f[1, j]
         lev = inten + par[P_LOG_EPS]
-        alpha = 0.0 if j == 0 else math.exp(-dt * inten / d_w)
+        lp_f[1, j] = 0.0 if j == 0 else math.exp(-dt * inten / d_w)
+        lp_f[2, j] = math.log(lev)
+        lp_f[3, j] = 1.0 / lev
+    # Then the recursion: V over the band's span, and the queries.
+    vlo = m  # channels V has touched: [vlo, vhi)
+    vhi = 0
+    for j in range(g_end):
+        b = lp_b[j]
+        alpha = lp_f[1, j]
         if alpha < 1e-200:  # F forgets its past (below 1e-200 of it): restart
             for c in range(m + 1):
                 vv[c] = 0.0
@@ -392,23 +442,35 @@ def _lowpass_rows(
                 scale = 1.0
             scale *= alpha
             wgt = (1.0 - alpha) / scale
-        vv[0] += wgt * math.log(lev)
+        vv[0] += wgt * lp_f[2, j]
         if b >= 0:
-            for c in range(lo, hi):
-                vv[c + 1] += wgt * (t0[c] * (1.0 - f) + t1[c] * f) / lev
-        # F_j completes the queries on [j - 1, j] and starts those on [j, j + 1].
+            lo = min(span_lo[b], span_lo[b + 1])
+            hi = max(span_hi[b], span_hi[b + 1])
+            t0 = table[b]
+            t1 = table[b + 1]
+            f = lp_f[0, j]
+            g0 = 1.0 - f
+            wl = wgt * lp_f[3, j]
+            for c in range(_u(lo), _u(hi)):
+                vv[c + _u(1)] += wl * (t0[c] * g0 + t1[c] * f)
+            vlo = min(vlo, lo)
+            vhi = max(vhi, hi)
+        # F_j completes the queries on [j - 1, j] and starts those on [j, j + 1]
+        # (V is zero outside channel 0 and the touched channels).
         while pb < nq and qi0[order[pb]] + 1 == j:
             qq = order[pb]
             wq = scale * (qpos[qq] - qi0[qq])
             row = fq[qq]
-            for c in range(m + 1):
+            row[0] += wq * vv[0]
+            for c in range(_u(vlo + 1), _u(vhi + 1)):
                 row[c] += wq * vv[c]
             pb += 1
         while pa < nq and qi0[order[pa]] == j:
             qq = order[pa]
             wq = scale * (1.0 - (qpos[qq] - qi0[qq]))
             row = fq[qq]
-            for c in range(m + 1):
+            row[0] += wq * vv[0]
+            for c in range(_u(vlo + 1), _u(vhi + 1)):
                 row[c] += wq * vv[c]
             pa += 1
     for i in range(k):
@@ -520,6 +582,9 @@ def solve_pixels(
     traw = np.empty(kmax)
     wn = np.empty(kmax)
     nbuf = 2 * kmax if lowpass else 1
+    n_grid = sweeps * ipar[I_SAMPLES] + 1 if lowpass else 1
+    lp_b = np.zeros(n_grid, np.int64)
+    lp_f = np.zeros((4, n_grid))
     vv = np.zeros(m + 1)
     fq = np.zeros((nbuf, m + 1))
     qpos = np.zeros(nbuf)
@@ -702,7 +767,7 @@ def solve_pixels(
             _clear_events(evr, evlo, evhi, k)
             _lowpass_rows(
                 x, traw, step, wn, k, phase, off, par, ipar, table, span_lo, span_hi,
-                vv, fq, qpos, qi0, order, evr, evc, evlo, evhi,
+                vv, fq, qpos, qi0, order, evr, evc, evlo, evhi, lp_b, lp_f,
             )  # fmt: skip
             for i in range(k):
                 zz[i] = 1.0
