@@ -554,6 +554,10 @@ def solve_pixels(
     sgn = np.empty(kmax)
     thr = np.empty(kmax)
     sweep_of = np.empty(kmax, np.int64)
+    bt = np.empty(kmax, np.int64)  # the band's table row and fraction at τ_i
+    ft = np.empty(kmax)
+    be = np.empty(kmax, np.int64)  # ... and at τ_i + η
+    fe = np.empty(kmax)
     drift = np.empty(kmax)
     i_hat = np.empty(kmax)
     sigma = np.empty(kmax)
@@ -644,6 +648,13 @@ def solve_pixels(
             peak_i = max(peak_i, i_hat[i])
             prev_s = sg
         s_hat = max(peak_i - base, 1e-3 * base)
+        # The band at each event (τ_i) and at the end of its refractory period
+        # (τ_i + η: the next event's reference and the anti-drift rows' "after"
+        # point), looked up once, in a pass of their own (independent lookups overlap).
+        for i in range(k):
+            bt[i], ft[i] = _band_at(tt[i], phase, off, par, ntab)
+            be[i], fe[i] = _band_at(tt[i] + eta, phase, off, par, ntab)
+        b_zero, f_zero = _band_at(0.0, phase, off, par, ntab)
         # Event rows [a(τ) - e^{σC} a(ρ); c'(1 - e^{σC})] / Î (× noise weight), kept.
         share = 0.0
         for i in range(k):
@@ -659,8 +670,8 @@ def solve_pixels(
                 w *= wn[i]
                 sigma[i] = math.sqrt(ideal)
                 share += var / (ideal + var)
-            b0, f0 = _band_at(tt[i], phase, off, par, ntab)
-            b1, f1 = _band_at(t_ref, phase, off, par, ntab)
+            b0, f0 = bt[i], ft[i]
+            b1, f1 = (b_zero, f_zero) if i == 0 else (be[i - 1], fe[i - 1])
             ri = evr[i]
             lohi[0] = m
             lohi[1] = 0
@@ -704,9 +715,9 @@ def solve_pixels(
                 ba, fa = -1, 0.0
                 bb, fb = -1, 0.0
                 if a_ev:
-                    ba, fa = _band_at(tt[prv] + eta, phase, off, par, ntab)
+                    ba, fa = be[prv], fe[prv]
                 if b_ev:
-                    bb, fb = _band_at(tt[nxt], phase, off, par, ntab)
+                    bb, fb = bt[nxt], ft[nxt]
                 if flat:
                     f_g = _band_sum(bg, fg, tabsum)
                     f_a = max(_band_sum(ba, fa, tabsum), 1e-9)
