@@ -1,0 +1,148 @@
+"""The fused CPU kernel of an earlier revision against today's, in one process.
+
+Whole-pipeline timings of two trees run in separate processes, and on a shared
+machine whose speed drifts by tens of percent within an hour that hides a change of a
+kernel. Here both kernels solve the same pixels in the same process, alternately:
+
+Setup: one sweep of the ColorChecker at `--size` (default 96×144), paper rig with
+the `--sensor` preset (`ideal` or `realistic`: then the noise-aware problem with the
+photoreceptor rows), the true per-pixel thresholds; the events screened and listed
+per pixel once (today's tree). Each kernel (`_reconstruct/_fused_jit.py` of
+`--old`, taken with `git show`, and of the working tree) solves all pixels on
+`--threads` threads: one warm-up call (numba compiles), then `--repeats` rounds,
+each kernel once per round. The earlier kernel must take the same arguments as
+today's `solve_pixels` (true since the kernel's `par`/`ipar` layout of 2026-11).
+
+Printed and written: µs per pixel (minimum and median of the rounds), the largest
+difference between the two answers, the same run's float32 matmul GFLOP/s.
+
+    python experiments/bench_kernel_ab.py --old 1c1a37c [--sensor realistic]
+        [--size 96x144] [--repeats 5] [--threads 1] [--out PATH]
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import jax.random as jr
+import numpy as np
+from _common import matmul_gflops
+
+import evhsi_jax as ev
+from evhsi_jax._reconstruct import _fused
+from evhsi_jax._reconstruct import _pipeline as pipe
+from evhsi_jax._reconstruct._pixels import pixel_lists
+from evhsi_jax._reconstruct._problem import ProblemConfig
+
+KERNEL = "evhsi_jax/_reconstruct/_fused_jit.py"
+
+
+def load_kernel(source: str, name: str, folder: Path):
+    """The kernel module from its source text (its one relative import made
+    absolute), as a module of its own in a temporary folder (compiled afresh)."""
+    text = source.replace(
+        "from .._base import njit", "from evhsi_jax._base import njit"
+    )
+    path = folder / f"{name}.py"
+    path.write_text(text)
+    spec = importlib.util.spec_from_file_location(name, path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--old", required=True, help="git revision of the earlier kernel")
+    ap.add_argument("--sensor", default="realistic", choices=["ideal", "realistic"])
+    ap.add_argument("--size", default="96x144")
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args()
+    root = Path(__file__).resolve().parent.parent
+    old_src = subprocess.run(
+        ["git", "show", f"{args.old}:{KERNEL}"], cwd=root, check=True,
+        capture_output=True, text=True,
+    ).stdout  # fmt: skip
+    new_src = (root / KERNEL).read_text()
+
+    h, w = ev.forward.parse_size(args.size)
+    rig = ev.Rig(sensor=args.sensor)
+    scene = ev.load_scene("colorchecker", (h, w))
+    events, info = ev.simulate(scene, rig, sweeps=1, key=jr.key(0), return_info=True)
+    t0 = int(events.trigger_t_us[0]) if events.trigger_t_us.size else 0
+    noise = pipe.noise_model(rig)
+    kept, _, _ = pipe.screen_events(events, rig, t0, noise, 1, None)
+    counts, starts, t_rel, sgn = pixel_lists(kept, t0)
+    sel = np.flatnonzero(counts)
+    offs = np.asarray(rig.column_offsets(w), np.float64)
+    prob = _fused.FusedProblem(
+        rig, pipe.channel_table(rig), ProblemConfig(), pipe.solver_spec("auto"), w,
+        offs, 1, noise,
+    )  # fmt: skip
+    lead = np.zeros(h * w)
+    thr_on = np.asarray(info.threshold_on, np.float64).ravel()
+    thr_off = np.asarray(info.threshold_off, np.float64).ravel()
+
+    with tempfile.TemporaryDirectory() as tmp:
+        sys.path.insert(0, tmp)
+        kernels = {
+            "old": load_kernel(old_src, "kernel_old", Path(tmp)),
+            "new": load_kernel(new_src, "kernel_new", Path(tmp)),
+        }
+
+        def solve(mod):
+            _fused_jit = sys.modules.get("evhsi_jax._reconstruct._fused_jit")
+            sys.modules["evhsi_jax._reconstruct._fused_jit"] = mod
+            import evhsi_jax._reconstruct as pkg
+
+            saved, pkg._fused_jit = getattr(pkg, "_fused_jit", None), mod
+            try:
+                t = time.perf_counter()
+                x, _, steps = _fused.solve_fused(
+                    prob, sel, starts, counts, t_rel, sgn, lead, thr_on, thr_off,
+                    threads=args.threads,
+                )  # fmt: skip
+                return time.perf_counter() - t, x, steps
+            finally:
+                sys.modules["evhsi_jax._reconstruct._fused_jit"] = _fused_jit
+                pkg._fused_jit = saved
+
+        answers = {k: solve(m)[1:] for k, m in kernels.items()}  # warm-up
+        times = {k: [] for k in kernels}
+        for _ in range(args.repeats):
+            for k, m in kernels.items():
+                times[k].append(solve(m)[0])
+    gflops = matmul_gflops()
+    dx = float(np.nanmax(np.abs(answers["new"][0] - answers["old"][0])))
+    rows = {}
+    for k in kernels:
+        us = [1e6 * t / sel.size for t in times[k]]
+        rows[k] = {"us_per_px_min": min(us), "us_per_px_median": statistics.median(us),
+                   "us_per_px": us}  # fmt: skip
+        print(f"{k} ({args.old if k == 'old' else 'working tree'}): "
+              f"{min(us):.1f} µs/px (median {statistics.median(us):.1f})")  # fmt: skip
+    ratio = rows["old"]["us_per_px_median"] / rows["new"]["us_per_px_median"]
+    print(f"old/new {ratio:.2f}x; max |x_new - x_old| {dx:.2e}; "
+          f"{sel.size} pixels, {args.threads} thread(s), sensor {args.sensor}; "
+          f"float32 matmul {gflops:.1f} GFLOP/s")  # fmt: skip
+    if args.out:
+        Path(args.out).write_text(json.dumps({
+            "old": args.old, "sensor": args.sensor, "size": [h, w],
+            "threads": args.threads, "pixels": int(sel.size), "rows": rows,
+            "median_ratio_old_over_new": ratio, "max_abs_diff": dx,
+            "matmul_gflops": gflops,
+        }, indent=2))  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
