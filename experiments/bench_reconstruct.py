@@ -1,7 +1,9 @@
 """Full-pipeline reconstruction speed (events → cube), solver `auto`, per backend.
 
-Setup: paper rig, ideal sensor, one sweep of the ColorChecker (default 96×144),
-reconstructed with the sensor's per-pixel thresholds (as after calibration). Per
+Setup: paper rig, ideal sensor (`--sensor realistic`: the `realistic` preset, whose
+noise model — threshold noise, jitter, 10 kHz photoreceptor — the reconstruction then
+uses, as after calibrating a real rig), one sweep of the ColorChecker (default
+96×144), reconstructed with the sensor's per-pixel thresholds (as after calibration). Per
 backend one warm-up call (compiles), then `--repeats` timed calls, all in one process;
 prints and stores the median pixels/s, the individual times, the process's CPU time
 per wall second, the metrics against the truth, the load average and the float32
@@ -18,7 +20,8 @@ thousand px/s) and report, per backend, the share of pixels within 0.1° SAM of 
 the issue's "equal accuracy" test.
 
 Run: `.venv/bin/python experiments/bench_reconstruct.py [--size 96x144] [--repeats 5]
-[--workers 2] [--reference] [--out experiments/results/bench_reconstruct.json]`.
+[--workers 2] [--sensor ideal|realistic] [--reference]
+[--out experiments/results/bench_reconstruct.json]`.
 """
 
 from __future__ import annotations
@@ -40,6 +43,7 @@ def main():
         "--workers", type=int, default=None, help="threads / XLA devices (all cores)"
     )
     ap.add_argument("--reference", action="store_true")
+    ap.add_argument("--sensor", default="ideal", choices=["ideal", "realistic"])
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
     workers = args.workers or len(os.sched_getaffinity(0))
@@ -56,7 +60,7 @@ def main():
     import evhsi_jax as ev
 
     h, w = ev.forward.parse_size(args.size)
-    rig = ev.Rig()
+    rig = ev.Rig(sensor=args.sensor)
     scene = ev.load_scene("colorchecker", (h, w))
     t0 = time.perf_counter()
     events, info = ev.simulate(scene, rig, sweeps=1, key=jr.key(0), return_info=True)
@@ -73,6 +77,7 @@ def main():
         print(f"float64 JAX reference in {time.perf_counter() - t0:.1f} s")
     results = {
         "size": [h, w],
+        "sensor": args.sensor,
         "events": len(events),
         "workers": workers,
         "backends": {},
