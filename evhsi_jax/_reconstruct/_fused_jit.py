@@ -650,7 +650,7 @@ def solve_pixels(
         s_hat = max(peak_i - base, 1e-3 * base)
         # The band at each event (τ_i) and at the end of its refractory period
         # (τ_i + η: the next event's reference and the anti-drift rows' "after"
-        # point), looked up once, in a pass of their own (independent lookups overlap).
+        # point), looked up once for the event and the anti-drift rows.
         for i in range(k):
             bt[i], ft[i] = _band_at(tt[i], phase, off, par, ntab)
             be[i], fe[i] = _band_at(tt[i] + eta, phase, off, par, ntab)
