@@ -49,6 +49,13 @@ def _band_at(t, phase, off, par, ntab):
     period = par[P_PERIOD]
     local = t + phase
     local = local - period * math.floor(local / period)
+    return _band_local(local, off, par, ntab)
+
+
+@njit(inline=True)
+@no_type_check
+def _band_local(local, off, par, ntab):
+    """:func:`_band_at` at the local time `local` within the sweep (in [0, period))."""
     lin = par[P_START] + par[P_SPEED] * (local + off)
     u = (lin - par[P_MID]) / par[P_HALF]
     centre = lin + par[P_CURV] * (1.0 - u * u)
@@ -396,20 +403,10 @@ def _lowpass_rows(
     # short passes over all points: one point's band lookup, intensity and
     # transcendental functions are a long chain of latencies, and in one loop with
     # the recursion they would not overlap from one point to the next (measured: the
-    # call took twice as long). The band's table row and fraction: _band_at's
-    # arithmetic at the local time (j mod n) dt, with the reciprocals taken once.
-    inv_half = 1.0 / par[P_HALF]
+    # call took twice as long). The band's table row and fraction at the grid's local
+    # time (j mod n) dt.
     for j in range(g_end):
-        lin = par[P_START] + par[P_SPEED] * ((j % n) * dt + off)
-        u = (lin - par[P_MID]) * inv_half
-        pos = (lin + par[P_CURV] * (1.0 - u * u) - par[P_TAB_LO]) * par[P_INV_STEP]
-        if pos < 0.0 or pos > ntab - 1:
-            lp_b[j] = -1
-            lp_f[0, j] = 0.0
-        else:
-            i0 = min(math.floor(pos), ntab - 2)
-            lp_b[j] = i0
-            lp_f[0, j] = pos - i0
+        lp_b[j], lp_f[0, j] = _band_local((j % n) * dt, off, par, ntab)
     for j in range(g_end):  # the intensity at x0
         b = lp_b[j]
         inten = par[P_BASE_REL]
