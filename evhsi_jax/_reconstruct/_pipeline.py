@@ -620,7 +620,8 @@ def reconstruct(
             cube, kkt_all, threads, bar.update, noise,
         )  # fmt: skip
 
-    def chunks():  # (flat pixel index per row, −1 for padding; the batch on the device)
+    def chunks():  # (flat pixel index per row, −1 for padding; its device copy when
+        # the batch was gathered there, else None; the batch on the device)
         if plan:
             per_pixel = jax.device_put(
                 tuple(a.astype(np_dtype) for a in (lead, offsets_all, thr_on, thr_off))
@@ -632,7 +633,7 @@ def reconstruct(
             pix = np.where(valid, b.pixel, 0)
             # Carried references: shift each pixel's clock to start at its reference.
             d = np.where(valid, lead[pix], 0.0)
-            yield b.pixel, _device_pixels(
+            yield b.pixel, None, _device_pixels(
                 b.t_us, b.polarity, b.mask, pix, b.column, d, offsets_all, thr_on,
                 thr_off, np_dtype,
             )  # fmt: skip
@@ -645,11 +646,10 @@ def reconstruct(
             jnp.full(cube.shape, _no_event_answer(rig, m), jnp.float32),
             jnp.full(kkt_all.shape, jnp.nan, jnp.float32),
         )
-    for pixel, px in chunks():
+    for pixel, pix_dev, px in chunks():
         valid = pixel >= 0
         x, kkt = solve(rig, table, cfg, spec, sub, px, sweeps, noise_j)
         if held is not None:
-            pix_dev = jax.device_put(pixel.astype(np.int32))
             if not bool(_any_failed(x, pix_dev)):
                 held = _place(*held, pix_dev, x, kkt)
                 bar.update(int(valid.sum()))
@@ -820,7 +820,6 @@ def screen_events(
         else:
             for i0 in starts:
                 part(i0)
-        outside = np.bincount(flat_pixel(~inside), minlength=h * w)
     else:
         x = events.x.astype(np.int64)
         local = np.mod(events.t_us.astype(np.float64) - t_start_us, period)
@@ -831,7 +830,7 @@ def screen_events(
             | ((local + period >= lo) & (local + period <= hi))
             | ((local - period >= lo) & (local - period <= hi))
         )
-        outside = np.bincount(flat_pixel(~inside), minlength=h * w)
+    outside = np.bincount(flat_pixel(~inside), minlength=h * w)
     hot |= (outside >= 2) & (outside >= 2 * sweeps)
     keep = inside & ~hot[flat_pixel()] if hot.any() else inside
     dropped = int(keep.size - keep.sum())

@@ -301,13 +301,16 @@ class DeviceLists:
         `thr_on`, `thr_off`: the device copies of the per-pixel clock shift, the
         per-column offsets and the per-pixel thresholds (in `dtype`).
 
-        **Returns:** `(pixel, events)` — the padded flat indices (−1 for padding) and
-        the batch."""
+        **Returns:** `(pixel, pixel_device, events)` — the padded flat indices (−1 for
+        padding) on the host and their int32 copy on the device (sent once), and the
+        batch."""
         pixel = np.full(size, -1, np.int32)
         pixel[: sel.size] = sel
-        return pixel.astype(np.int64), _gather_batch(
-            self.t_sorted, self.s_sorted, self.starts, self.counts_device, pixel,
-            lead, offsets, thr_on, thr_off, k, self.width, np.dtype(dtype).name,
+        pixel_device = jax.device_put(pixel)
+        return pixel.astype(np.int64), pixel_device, _gather_batch(
+            self.t_sorted, self.s_sorted, self.starts, self.counts_device,
+            pixel_device, lead, offsets, thr_on, thr_off, k, self.width,
+            np.dtype(dtype).name,
         )  # fmt: skip
 
 
