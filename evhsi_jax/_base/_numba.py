@@ -78,23 +78,56 @@ def use_backend(name: str) -> Iterator[None]:
 
 
 def njit(
-    fn: Callable | None = None, *, inline: bool = False, fastmath=False
+    fn: Callable | None = None, *, inline: bool = False, fastmath=False,
+    slp: bool = False,
 ) -> Callable:
     """`numba.njit(cache=True, nogil=True)`, without the cache when no folder for it is
     writable (numba raises then instead of falling back). `inline=True`: inlined into
     its callers by numba (`inline="always"`; such helpers are not cached themselves).
     `fastmath`: numba's LLVM flags (e.g. `{"reassoc", "contract"}` lets sums be
-    vectorised in a different order)."""
+    vectorised in a different order). `slp=True`: compiled with LLVM's SLP
+    vectoriser, which numba switches off process-wide by default (numba PR #8852,
+    after miscompilations reported on older LLVM); see :func:`_with_slp`."""
     import numba
 
     if fn is None:
-        return lambda f: njit(f, inline=inline, fastmath=fastmath)
+        return lambda f: njit(f, inline=inline, fastmath=fastmath, slp=slp)
     if inline:
         return numba.njit(inline="always", fastmath=fastmath)(fn)
     try:
-        return numba.njit(cache=True, nogil=True, fastmath=fastmath)(fn)
+        disp = numba.njit(cache=True, nogil=True, fastmath=fastmath)(fn)
     except RuntimeError:
-        return numba.njit(nogil=True, fastmath=fastmath)(fn)
+        disp = numba.njit(nogil=True, fastmath=fastmath)(fn)
+    return _with_slp(disp) if slp else disp
+
+
+def _with_slp(disp):
+    """`disp` whose compilations run with numba's `SLP_VECTORIZE` switched on.
+
+    numba reads the flag each time it builds LLVM's pass pipeline, so it is set only
+    while this dispatcher compiles (and the functions it calls compile with it),
+    under numba's compiler lock, which every compilation in the process takes: no
+    other function is compiled with it. What SLP packs is independent scalar
+    operations into vector ones, without reordering floating-point arithmetic, so
+    the results are those of the scalar code. The object code in numba's cache is
+    the one compiled this way (the cache is keyed by the source file, which carries
+    this decorator)."""
+    from numba.core import config
+    from numba.core.compiler_lock import global_compiler_lock
+
+    compile_plain = disp.compile
+
+    def compile(sig):
+        with global_compiler_lock:
+            before = config.SLP_VECTORIZE
+            config.SLP_VECTORIZE = 1
+            try:
+                return compile_plain(sig)
+            finally:
+                config.SLP_VECTORIZE = before
+
+    disp.compile = compile
+    return disp
 
 
 def readonly(a: np.ndarray, dtype) -> np.ndarray:

@@ -69,11 +69,17 @@ def fused_supported(spec, cfg: ProblemConfig) -> str | None:
 
 
 class FusedProblem:
-    """The rig- and configuration-dependent inputs of the kernel, built once."""
+    """The rig- and configuration-dependent inputs of the kernel, built once.
+
+    `lanes`: pixels whose systems are factorised side by side (4, the default; 1: one
+    pixel at a time, the reference the tests compare with). Only where a pixel needs
+    one solve; the noise-aware problem with its photoreceptor pass or reweighting
+    solves one pixel at a time."""
 
     def __init__(self, rig: Rig, table, cfg: ProblemConfig, spec, width: int,
-                 column_offsets_us: np.ndarray, sweeps: int, noise=None):  # fmt: skip
-        from ._fused_jit import N_PAR  # (numba: only when the fused path runs)
+                 column_offsets_us: np.ndarray, sweeps: int, noise=None, *,
+                 lanes: int | None = None):  # fmt: skip
+        from ._fused_jit import LANES, N_PAR  # (numba: only when the fused path runs)
 
         tab = np.asarray(table.values, np.float64)
         m = tab.shape[1]
@@ -117,7 +123,7 @@ class FusedProblem:
             [sweeps, cfg.int_points, INT_TARGETS.index(cfg.int_target),
              int(cfg.normalise), int(rig.reset_mode == "release"), spec.iters,
              int(noise is not None), cfg.robust_steps, cfg.lowpass_passes,
-             int(rig.samples_per_sweep)],
+             int(rig.samples_per_sweep), LANES if lanes is None else int(lanes)],
             np.int64,
         )  # fmt: skip
         # Dark-channel prior: per neighbour difference, ½(dim_k + dim_k+1), dim the

@@ -6,11 +6,17 @@ model, including the photoreceptor pass and the robust reweighting of
 :func:`._pipeline._solve_chunk`) and :func:`._solvers.active_set_batch`, without any
 M×M matrix leaving the cache.
 
+Where a pixel needs one solve (the ideal sensor; a noise model without photoreceptor
+pass and reweighting), four pixels' systems are factorised and solved side by side,
+one per lane of a float64 × 4 vector register (`_solve_lanes`): the envelope
+Cholesky's loops are short, and their fixed cost is then paid once for four pixels.
+
 Imported on first use (numba). Marked `no_type_check` so the jaxtyping import hook of
 the test suite leaves it to numba. The per-row helpers are inlined; `_assemble_solve`
-(called three times) and `_lowpass_rows` are compiled as functions of their own:
-inlining them too was no faster on two threads in a development check and doubled the
-first compilation (~55 s against ~27 s, once per install: numba caches it).
+(called three times), `_box_qp`, `_solve_lanes` and `_lowpass_rows` are compiled as
+functions of their own: inlining them too was no faster on two threads in a
+development check and doubled the first compilation (~55 s against ~27 s, once per
+install: numba caches it).
 """
 
 from __future__ import annotations
@@ -30,7 +36,10 @@ P_SIG_C, P_SIG_T, P_DW, P_FLOOR, P_ADARK, P_RC, P_REJECT = range(19, 26)
 P_BASE_REL, P_LOG_EPS = range(26, 28)
 N_PAR = 28
 I_SWEEPS, I_POINTS, I_TARGET, I_NORM, I_RELEASE, I_ITERS, I_NOISE, I_ROBUST = range(8)
-I_LOWPASS, I_SAMPLES = range(8, 10)
+I_LOWPASS, I_SAMPLES, I_LANES = range(8, 11)
+#: Pixels whose factorisations run side by side, one per SIMD lane (float64 × 4:
+#: AVX2).
+LANES = 4
 
 
 @njit(inline=True)
@@ -293,7 +302,7 @@ def _add_priors(qm, first, spec, spec_first, spec_w, ridge_rel, spec_trace):
             first[i] = spec_first[i]
 
 
-@njit(inline=True)
+@njit
 @no_type_check
 def _box_qp(qm, qv, first, free, lf, inv, x, p, gr, tol, max_iters):
     """min ½xᵀQx + qᵀx, x ≥ 0: the unconstrained minimiser, then the primal
@@ -355,6 +364,183 @@ def _box_qp(qm, qv, first, free, lf, inv, x, p, gr, tol, max_iters):
         else:
             done = True
     return steps
+
+
+@njit(inline=True)
+@no_type_check
+def _lane_factor(ql, ptr, fu, lf, inv, fail, m):
+    """:func:`_factor` of four systems at once, all free, in the lane layout of
+    :func:`_solve_lanes`: lane l of entry (i, j) at `4 (ptr[i] - fu[i] + j) + l`.
+    The same operations in the same order per lane as `_factor` (the union envelope
+    only adds products with exact zeros); a lane whose pivot is not positive is
+    marked in `fail` and carried on with pivot 1."""
+    for i in range(m):
+        fi = fu[i]
+        pi = ptr[i] - fi
+        e = _u(4 * (pi + i))
+        d0 = ql[e]
+        d1 = ql[e + _u(1)]
+        d2 = ql[e + _u(2)]
+        d3 = ql[e + _u(3)]
+        for j in range(fi, i):
+            pj = ptr[j] - fu[j]
+            e = _u(4 * (pi + j))
+            s0 = ql[e]
+            s1 = ql[e + _u(1)]
+            s2 = ql[e + _u(2)]
+            s3 = ql[e + _u(3)]
+            for k in range(_u(max(fi, fu[j])), _u(j)):
+                a = _u(4) * (_u(pi) + k)
+                b = _u(4) * (_u(pj) + k)
+                s0 -= lf[a] * lf[b]
+                s1 -= lf[a + _u(1)] * lf[b + _u(1)]
+                s2 -= lf[a + _u(2)] * lf[b + _u(2)]
+                s3 -= lf[a + _u(3)] * lf[b + _u(3)]
+            c = _u(4 * j)
+            v0 = s0 * inv[c]
+            v1 = s1 * inv[c + _u(1)]
+            v2 = s2 * inv[c + _u(2)]
+            v3 = s3 * inv[c + _u(3)]
+            lf[e] = v0
+            lf[e + _u(1)] = v1
+            lf[e + _u(2)] = v2
+            lf[e + _u(3)] = v3
+            d0 -= v0 * v0
+            d1 -= v1 * v1
+            d2 -= v2 * v2
+            d3 -= v3 * v3
+        if not d0 > 0.0:
+            fail[0] = True
+            d0 = 1.0
+        if not d1 > 0.0:
+            fail[1] = True
+            d1 = 1.0
+        if not d2 > 0.0:
+            fail[2] = True
+            d2 = 1.0
+        if not d3 > 0.0:
+            fail[3] = True
+            d3 = 1.0
+        c = _u(4 * i)
+        inv[c] = 1.0 / math.sqrt(d0)
+        inv[c + _u(1)] = 1.0 / math.sqrt(d1)
+        inv[c + _u(2)] = 1.0 / math.sqrt(d2)
+        inv[c + _u(3)] = 1.0 / math.sqrt(d3)
+
+
+@njit(inline=True)
+@no_type_check
+def _lane_solve(lf, ptr, fu, inv, qv, out, m):
+    """:func:`_solve` (all free) of the four factorised systems: out = -Q⁻¹ q per
+    lane, `qv` and `out` as (i, lane) at 4 i + lane. The forward dot products in
+    four partial sums as `_dot1`'s (started at the union envelope)."""
+    for i in range(m):
+        pi = ptr[i] - fu[i]
+        a0 = a1 = a2 = a3 = 0.0
+        b0 = b1 = b2 = b3 = 0.0
+        c0 = c1 = c2 = c3 = 0.0
+        e0 = e1 = e2 = e3 = 0.0
+        k0 = fu[i]
+        n4 = (i - k0) // 4
+        for q in range(_u(n4)):
+            k = _u(k0) + _u(4) * q
+            a = _u(4) * (_u(pi) + k)
+            o = _u(4) * k
+            a0 += lf[a] * out[o]
+            a1 += lf[a + _u(1)] * out[o + _u(1)]
+            a2 += lf[a + _u(2)] * out[o + _u(2)]
+            a3 += lf[a + _u(3)] * out[o + _u(3)]
+            b0 += lf[a + _u(4)] * out[o + _u(4)]
+            b1 += lf[a + _u(5)] * out[o + _u(5)]
+            b2 += lf[a + _u(6)] * out[o + _u(6)]
+            b3 += lf[a + _u(7)] * out[o + _u(7)]
+            c0 += lf[a + _u(8)] * out[o + _u(8)]
+            c1 += lf[a + _u(9)] * out[o + _u(9)]
+            c2 += lf[a + _u(10)] * out[o + _u(10)]
+            c3 += lf[a + _u(11)] * out[o + _u(11)]
+            e0 += lf[a + _u(12)] * out[o + _u(12)]
+            e1 += lf[a + _u(13)] * out[o + _u(13)]
+            e2 += lf[a + _u(14)] * out[o + _u(14)]
+            e3 += lf[a + _u(15)] * out[o + _u(15)]
+        for k in range(_u(k0 + 4 * n4), _u(i)):
+            a = _u(4) * (_u(pi) + k)
+            o = _u(4) * k
+            a0 += lf[a] * out[o]
+            a1 += lf[a + _u(1)] * out[o + _u(1)]
+            a2 += lf[a + _u(2)] * out[o + _u(2)]
+            a3 += lf[a + _u(3)] * out[o + _u(3)]
+        c = _u(4 * i)
+        out[c] = (-qv[c] - ((a0 + b0) + (c0 + e0))) * inv[c]
+        out[c + _u(1)] = (-qv[c + _u(1)] - ((a1 + b1) + (c1 + e1))) * inv[c + _u(1)]
+        out[c + _u(2)] = (-qv[c + _u(2)] - ((a2 + b2) + (c2 + e2))) * inv[c + _u(2)]
+        out[c + _u(3)] = (-qv[c + _u(3)] - ((a3 + b3) + (c3 + e3))) * inv[c + _u(3)]
+    for i in range(m - 1, -1, -1):
+        c = _u(4 * i)
+        x0 = out[c] * inv[c]
+        x1 = out[c + _u(1)] * inv[c + _u(1)]
+        x2 = out[c + _u(2)] * inv[c + _u(2)]
+        x3 = out[c + _u(3)] * inv[c + _u(3)]
+        out[c] = x0
+        out[c + _u(1)] = x1
+        out[c + _u(2)] = x2
+        out[c + _u(3)] = x3
+        pi = ptr[i] - fu[i]
+        for k in range(_u(fu[i]), _u(i)):
+            a = _u(4) * (_u(pi) + k)
+            o = _u(4) * k
+            out[o] -= lf[a] * x0
+            out[o + _u(1)] -= lf[a + _u(1)] * x1
+            out[o + _u(2)] -= lf[a + _u(2)] * x2
+            out[o + _u(3)] -= lf[a + _u(3)] * x3
+
+
+@njit(slp=True)
+@no_type_check
+def _solve_lanes(qms, qvs, firsts, nl, ql, lf, inv, qvl, xl, fu, ptr, fail):
+    """The unconstrained minimisers of the systems `qms[:nl]`, `qvs[:nl]` (envelopes
+    `firsts`; nl ≤ 4) side by side: each lane of a vector register carries one
+    pixel's factorisation and solves, so the short loops of the envelope Cholesky
+    (whose cost is their fixed overhead, not their arithmetic) run once for four
+    pixels. Over the union of the envelopes, packed row by row. Lane l's answer is
+    `xl[4 i + l]`; `fail[l]` when its factorisation failed. Lanes ≥ nl repeat the
+    last system (their answers are not used). numba vectorises the four lanes'
+    operations only with its SLP vectoriser (`njit(slp=True)`)."""
+    m = qvs.shape[1]
+    top = nl - 1
+    l1 = min(1, top)
+    l2 = min(2, top)
+    l3 = min(3, top)
+    tot = 0
+    for i in range(m):
+        f = min(min(firsts[0, i], firsts[l1, i]), min(firsts[l2, i], firsts[l3, i]))
+        fu[i] = f
+        ptr[i] = tot
+        tot += i + 1 - f
+    q0 = qms[0]
+    q1 = qms[l1]
+    q2 = qms[l2]
+    q3 = qms[l3]
+    for i in range(m):
+        c = _u(4 * i)
+        qvl[c] = qvs[0, i]
+        qvl[c + _u(1)] = qvs[l1, i]
+        qvl[c + _u(2)] = qvs[l2, i]
+        qvl[c + _u(3)] = qvs[l3, i]
+        pi = _u(ptr[i] - fu[i])
+        r0 = q0[i]
+        r1 = q1[i]
+        r2 = q2[i]
+        r3 = q3[i]
+        for j in range(_u(fu[i]), _u(i + 1)):
+            e = _u(4) * (pi + j)
+            ql[e] = r0[j]
+            ql[e + _u(1)] = r1[j]
+            ql[e + _u(2)] = r2[j]
+            ql[e + _u(3)] = r3[j]
+    for l in range(4):
+        fail[l] = False
+    _lane_factor(ql, ptr, fu, lf, inv, fail, m)
+    _lane_solve(lf, ptr, fu, inv, qvl, xl, m)
 
 
 @njit
@@ -510,6 +696,57 @@ def _assemble_solve(
     return _box_qp(qm, qv, first, free, lf, inv, x, p, gr, par[P_TOL], max_iters)
 
 
+@njit(inline=True)
+@no_type_check
+def _write_answer(r, steps, qm, first, qv, x, gr, out_x, out_kkt, out_steps):
+    """Pixel r's answer x, its KKT residual and active-set steps (NaN, NaN, −1 when
+    a factorisation failed)."""
+    m = qv.size
+    if steps < 0:
+        for i in range(m):
+            out_x[r, i] = np.nan
+        out_kkt[r] = np.nan
+        out_steps[r] = -1
+        return
+    _gradient(qm, first, qv, x, gr)
+    qmax = 0.0
+    for i in range(m):
+        qmax = max(qmax, abs(qm[i, i]))
+    kkt = 0.0
+    for i in range(m):
+        kkt = max(kkt, abs(x[i] - max(x[i] - gr[i] / qmax, 0.0)))
+        out_x[r, i] = x[i]
+    out_kkt[r] = kkt
+    out_steps[r] = steps
+
+
+@njit(inline=True)
+@no_type_check
+def _finish_lanes(
+    r0, nl, qms, qvs, firsts, ql, lfl, invl, qvl, xl, fu, ptr, fail, free, lf, inv,
+    x, p, gr, par, max_iters, out_x, out_kkt, out_steps,
+):  # fmt: skip
+    """The box QPs of the group of pixels r0 … r0 + nl − 1: their unconstrained
+    minimisers side by side (:func:`_solve_lanes`); a pixel whose minimiser has a
+    negative channel (or whose factorisation failed) runs :func:`_box_qp` on its
+    own, which begins with the same minimiser, as the one-pixel path does."""
+    m = qvs.shape[1]
+    _solve_lanes(qms, qvs, firsts, nl, ql, lfl, invl, qvl, xl, fu, ptr, fail)
+    for lane in range(nl):
+        qm = qms[lane]
+        qv = qvs[lane]
+        first = firsts[lane]
+        neg = fail[lane]
+        for i in range(m):
+            v = xl[4 * i + lane]
+            neg = neg or not v >= 0.0  # (NaN too: _box_qp keeps the 1-pixel path's)
+            x[i] = max(v, 0.0)
+        steps = 0
+        if neg:
+            steps = _box_qp(qm, qv, first, free, lf, inv, x, p, gr, par[P_TOL], max_iters)
+        _write_answer(r0 + lane, steps, qm, first, qv, x, gr, out_x, out_kkt, out_steps)
+
+
 @njit
 @no_type_check
 def solve_pixels(
@@ -564,14 +801,11 @@ def solve_pixels(
     evc = np.zeros(kmax)
     evlo = np.zeros(kmax, np.int64)
     evhi = np.zeros(kmax, np.int64)
-    qm = np.zeros((m, m))
     qd = np.zeros((m, m))
     qvd = np.zeros(m)
     lf = np.zeros((m, m))
     inv = np.zeros(m)
-    qv = np.zeros(m)
     row = np.zeros(m)
-    first = np.zeros(m, np.int64)
     free = np.ones(m, np.bool_)
     x = np.zeros(m)
     p = np.zeros(m)
@@ -592,7 +826,25 @@ def solve_pixels(
     qi0 = np.zeros(nbuf, np.int64)
     order = np.zeros(nbuf, np.int64)
     keep_drift = robust_steps > 0 or lowpass
+    # Without a second solve (no photoreceptor pass, no reweighting) the pixels'
+    # systems are factorised `ipar[I_LANES]` (1 or 4) at a time (_solve_lanes).
+    group = LANES if not keep_drift and ipar[I_LANES] == LANES else 1
+    qms = np.zeros((group, m, m))
+    qvs = np.zeros((group, m))
+    firsts = np.zeros((group, m), np.int64)
+    ql = np.zeros(LANES * (m * (m + 1) // 2) if group > 1 else 1)
+    lfl = np.zeros(ql.size)
+    invl = np.zeros(LANES * m)
+    qvl = np.zeros(LANES * m)
+    xl = np.zeros(LANES * m)
+    fu = np.zeros(m, np.int64)
+    ptr = np.zeros(m, np.int64)
+    fail = np.zeros(LANES, np.bool_)
     for r in range(sel.size):
+        lane = r % group
+        qm = qms[lane]
+        qv = qvs[lane]
+        first = firsts[lane]
         pix = sel[r]
         k = use[pix]
         s0 = starts[pix]
@@ -763,6 +1015,19 @@ def solve_pixels(
         for i in range(k):
             zz[i] = 1.0
         spec_w = par[P_ASPEC] / (s_hat * s_hat) if norm else par[P_ASPEC]
+        if group > 1:  # this pixel's system waits for its group's factorisations
+            _add_events(qm, qv, first, evr, evc, evlo, evhi, zz, k)
+            _add_priors(
+                qm, first, spec, spec_first, spec_w, par[P_RIDGE], par[P_SPEC_TRACE]
+            )  # fmt: skip
+            _clear_events(evr, evlo, evhi, k)
+            if lane == group - 1 or r == sel.size - 1:
+                _finish_lanes(
+                    r - lane, lane + 1, qms, qvs, firsts, ql, lfl, invl, qvl, xl, fu,
+                    ptr, fail, free, lf, inv, x, p, gr, par, max_iters, out_x,
+                    out_kkt, out_steps,
+                )  # fmt: skip
+            continue
         steps = _assemble_solve(
             False, qm, qv, qd, qvd, first, evr, evc, evlo, evhi, zz, k, spec,
             spec_first, spec_w, par, free, lf, inv, x, p, gr, max_iters,
@@ -813,19 +1078,6 @@ def solve_pixels(
                 spec_first, spec_w, par, free, lf, inv, x, p, gr, max_iters,
             )  # fmt: skip
         _clear_events(evr, evlo, evhi, k)  # for the next pixel
-        if steps < 0:
-            for i in range(m):
-                out_x[r, i] = np.nan
-            out_kkt[r] = np.nan
-            out_steps[r] = -1
-            continue
-        _gradient(qm, first, qv, x, gr)
-        qmax = 0.0
-        for i in range(m):
-            qmax = max(qmax, abs(qm[i, i]))
-        kkt = 0.0
-        for i in range(m):
-            kkt = max(kkt, abs(x[i] - max(x[i] - gr[i] / qmax, 0.0)))
-            out_x[r, i] = x[i]
-        out_kkt[r] = kkt
-        out_steps[r] = steps
+        _write_answer(
+            r, steps, qm, first, qv, x, gr, out_x, out_kkt, out_steps
+        )  # fmt: skip

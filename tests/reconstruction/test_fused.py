@@ -104,6 +104,66 @@ def test_active_set_steps_match(captures):
     np.testing.assert_array_equal(steps, steps2)
 
 
+@pytest.mark.parametrize("scene", ["colorchecker", "peaks"])
+def test_lanes_equal_one_pixel_at_a_time(captures, scene):
+    """Four pixels factorised side by side (the default) give the one-pixel kernel's
+    answers and steps, also for a last group of fewer than four and for pixels that
+    need active-set steps (peaks)."""
+    rig, events, info = captures[scene]
+    h, w = SIZE
+    counts, starts, t, s = _fused_lists(rig, events)
+    sel = np.flatnonzero(counts)[:-1]  # 47 pixels: a group of three at the end
+    answers = []
+    for lanes in (1, 4):
+        prob = _fused.FusedProblem(
+            rig, _pipeline.channel_table(rig), ProblemConfig(),
+            _pipeline.solver_spec("auto"), w, np.asarray(rig.column_offsets(w)), 2,
+            lanes=lanes,
+        )  # fmt: skip
+        answers.append(_fused.solve_fused(
+            prob, sel, starts, counts, t, s, np.zeros(h * w),
+            info.threshold_on.reshape(-1), info.threshold_off.reshape(-1), threads=1,
+        ))  # fmt: skip
+    (x1, kkt1, steps1), (x4, kkt4, steps4) = answers
+    assert sel.size % 4 == 3 and np.all(steps1 >= 0)
+    assert (steps1.max() > 0) == (scene == "peaks")
+    np.testing.assert_array_equal(steps4, steps1)
+    np.testing.assert_allclose(x4, x1, rtol=0, atol=1e-11 * np.abs(x1).max())
+    np.testing.assert_allclose(kkt4, kkt1, rtol=0, atol=1e-9)
+
+
+def test_lane_solver_flags_a_failed_lane():
+    """`_solve_lanes` on three systems with different envelopes (the fourth lane
+    repeats the third): each lane's answer is its own system's solution, and only
+    the lane whose matrix is not positive definite is marked failed."""
+    from evhsi_jax._reconstruct import _fused_jit as jit
+
+    m, rng = 12, np.random.default_rng(3)
+    qms, qvs = np.zeros((4, m, m)), rng.normal(size=(4, m))
+    firsts = np.zeros((4, m), np.int64)
+    for lane, band in enumerate((2, 5, 11)):
+        a = np.zeros((m, m))
+        for i in range(m):
+            lo = max(0, i - band)
+            a[i, lo : i + 1] = rng.normal(size=i + 1 - lo)
+            a[i, i] = 3.0 + band
+        full = a @ a.T  # banded-envelope SPD (band² wide); lane 1 made indefinite
+        if lane == 1:
+            full[4, 4] = -1.0
+        qms[lane] = np.tril(full)
+        firsts[lane] = [np.flatnonzero(np.abs(full[i, : i + 1]) > 0)[0] for i in range(m)]
+    ql = np.zeros(4 * m * (m + 1) // 2)
+    lf, inv, qvl, xl = np.zeros(ql.size), np.zeros(4 * m), np.zeros(4 * m), np.zeros(4 * m)
+    fu, ptr, fail = np.zeros(m, np.int64), np.zeros(m, np.int64), np.zeros(4, bool)
+    jit._solve_lanes(qms, qvs, firsts, 3, ql, lf, inv, qvl, xl, fu, ptr, fail)
+    assert list(fail) == [False, True, False, False]
+    for lane in (0, 2):
+        full = qms[lane] + np.tril(qms[lane], -1).T
+        want = -np.linalg.solve(full, qvs[lane])
+        np.testing.assert_allclose(xl[lane::4], want, rtol=1e-10, atol=1e-12)
+    np.testing.assert_array_equal(xl[3::4], xl[2::4])  # the repeated last system
+
+
 def _fused_lists(rig, events):
     t0 = int(events.trigger_t_us[0])
     screened, _, _ = _pipeline.screen_events(events, rig, t0, None, 2)
