@@ -72,9 +72,7 @@ class FusedProblem:
     """The rig- and configuration-dependent inputs of the kernel, built once.
 
     `lanes`: pixels whose systems are factorised side by side (4, the default; 1: one
-    pixel at a time, the reference the tests compare with). Only where a pixel needs
-    one solve; the noise-aware problem with its photoreceptor pass or reweighting
-    solves one pixel at a time."""
+    pixel at a time, the reference the tests compare with)."""
 
     def __init__(self, rig: Rig, table, cfg: ProblemConfig, spec, width: int,
                  column_offsets_us: np.ndarray, sweeps: int, noise=None, *,

@@ -6,10 +6,12 @@ model, including the photoreceptor pass and the robust reweighting of
 :func:`._pipeline._solve_chunk`) and :func:`._solvers.active_set_batch`, without any
 M×M matrix leaving the cache.
 
-Where a pixel needs one solve (the ideal sensor; a noise model without photoreceptor
-pass and reweighting), four pixels' systems are factorised and solved side by side,
-one per lane of a float64 × 4 vector register (`_solve_lanes`): the envelope
-Cholesky's loops are short, and their fixed cost is then paid once for four pixels.
+Pixels go in groups of four: each is assembled on its own, then the four systems are
+factorised and solved side by side, one per lane of a float64 × 4 vector register
+(`_solve_lanes`): the envelope Cholesky's loops are short, and their fixed cost is
+then paid once for four pixels. With the noise model each pixel of the group keeps its
+event rows and drift part, and the group is solved together again after each
+photoreceptor pass and reweighting (a pixel whose reweighting has converged sits out).
 
 Imported on first use (numba). Marked `no_type_check` so the jaxtyping import hook of
 the test suite leaves it to numba. The per-row helpers are inlined; `_assemble_solve`
@@ -537,8 +539,8 @@ def _solve_lanes(qms, qvs, firsts, nl, ql, lf, inv, qvl, xl, fu, ptr, fail):
             ql[e + _u(1)] = r1[j]
             ql[e + _u(2)] = r2[j]
             ql[e + _u(3)] = r3[j]
-    for l in range(4):
-        fail[l] = False
+    for lane in range(4):
+        fail[lane] = False
     _lane_factor(ql, ptr, fu, lf, inv, fail, m)
     _lane_solve(lf, ptr, fu, inv, qvl, xl, m)
 
@@ -683,17 +685,16 @@ def _lowpass_rows(
 
 @njit
 @no_type_check
-def _assemble_solve(
+def _assemble(
     restore, qm, qv, qd, qvd, first, evr, evc, evlo, evhi, u, k, spec, spec_first,
-    spec_w, par, free, lf, inv, x, p, gr, max_iters,
+    spec_w, par,
 ):  # fmt: skip
     """Q, q ← (the kept drift part, if `restore`) + the event rows weighted by `u` +
-    the priors; then the box QP into `x`. Returns its steps (−1: failed)."""
+    the priors."""
     if restore:
         _restore_drift(qm, qv, qd, qvd, first)
     _add_events(qm, qv, first, evr, evc, evlo, evhi, u, k)
     _add_priors(qm, first, spec, spec_first, spec_w, par[P_RIDGE], par[P_SPEC_TRACE])
-    return _box_qp(qm, qv, first, free, lf, inv, x, p, gr, par[P_TOL], max_iters)
 
 
 @njit(inline=True)
@@ -722,29 +723,39 @@ def _write_answer(r, steps, qm, first, qv, x, gr, out_x, out_kkt, out_steps):
 
 @njit(inline=True)
 @no_type_check
-def _finish_lanes(
-    r0, nl, qms, qvs, firsts, ql, lfl, invl, qvl, xl, fu, ptr, fail, free, lf, inv,
-    x, p, gr, par, max_iters, out_x, out_kkt, out_steps,
+def _solve_group(
+    nl, todo, qms, qvs, firsts, xs, steps, ql, lfl, invl, qvl, xl, fu, ptr, fail,
+    free, lf, inv, p, gr, par, max_iters,
 ):  # fmt: skip
-    """The box QPs of the group of pixels r0 … r0 + nl − 1: their unconstrained
-    minimisers side by side (:func:`_solve_lanes`); a pixel whose minimiser has a
-    negative channel (or whose factorisation failed) runs :func:`_box_qp` on its
-    own, which begins with the same minimiser, as the one-pixel path does."""
+    """The box QPs of the group's systems `qms[:nl]` marked in `todo`, answers into
+    `xs`, steps into `steps` (−1: a factorisation failed). One system: :func:`_box_qp`.
+    Four: their unconstrained minimisers side by side (:func:`_solve_lanes`); a pixel
+    whose minimiser has a negative channel (or whose factorisation failed) then runs
+    :func:`_box_qp` on its own, which begins with the same minimiser."""
     m = qvs.shape[1]
+    tol = par[P_TOL]
+    if qms.shape[0] == 1:
+        if todo[0]:
+            steps[0] = _box_qp(
+                qms[0], qvs[0], firsts[0], free, lf, inv, xs[0], p, gr, tol, max_iters
+            )  # fmt: skip
+        return
     _solve_lanes(qms, qvs, firsts, nl, ql, lfl, invl, qvl, xl, fu, ptr, fail)
     for lane in range(nl):
-        qm = qms[lane]
-        qv = qvs[lane]
-        first = firsts[lane]
+        if not todo[lane]:
+            continue
+        x = xs[lane]
         neg = fail[lane]
         for i in range(m):
             v = xl[4 * i + lane]
             neg = neg or not v >= 0.0  # (NaN too: _box_qp keeps the 1-pixel path's)
             x[i] = max(v, 0.0)
-        steps = 0
+        steps[lane] = 0
         if neg:
-            steps = _box_qp(qm, qv, first, free, lf, inv, x, p, gr, par[P_TOL], max_iters)
-        _write_answer(r0 + lane, steps, qm, first, qv, x, gr, out_x, out_kkt, out_steps)
+            steps[lane] = _box_qp(
+                qms[lane], qvs[lane], firsts[lane], free, lf, inv, x, p, gr, tol,
+                max_iters,
+            )  # fmt: skip
 
 
 @njit
@@ -784,7 +795,6 @@ def solve_pixels(
     for r in range(sel.size):
         kmax = max(kmax, use[sel[r]])
     tt = np.empty(kmax)
-    step = np.empty(kmax)
     sgn = np.empty(kmax)
     thr = np.empty(kmax)
     sweep_of = np.empty(kmax, np.int64)
@@ -794,28 +804,17 @@ def solve_pixels(
     fe = np.empty(kmax)
     drift = np.empty(kmax)
     i_hat = np.empty(kmax)
-    sigma = np.empty(kmax)
     absz = np.empty(kmax)
-    zz = np.empty(kmax)
-    evr = np.zeros((kmax, m))
-    evc = np.zeros(kmax)
-    evlo = np.zeros(kmax, np.int64)
-    evhi = np.zeros(kmax, np.int64)
-    qd = np.zeros((m, m))
-    qvd = np.zeros(m)
     lf = np.zeros((m, m))
     inv = np.zeros(m)
     row = np.zeros(m)
     free = np.ones(m, np.bool_)
-    x = np.zeros(m)
     p = np.zeros(m)
     gr = np.zeros(m)
     lohi = np.zeros(2, np.int64)
     d_w = par[P_DW]
     lowpass = noisy_model and d_w > 0.0 and sweeps <= 4 and ipar[I_LOWPASS] > 0
     lp_passes = ipar[I_LOWPASS] if lowpass else 0
-    traw = np.empty(kmax)
-    wn = np.empty(kmax)
     nbuf = 2 * kmax if lowpass else 1
     n_grid = sweeps * ipar[I_SAMPLES] + 1 if lowpass else 1
     lp_b = np.zeros(n_grid, np.int64)
@@ -826,12 +825,31 @@ def solve_pixels(
     qi0 = np.zeros(nbuf, np.int64)
     order = np.zeros(nbuf, np.int64)
     keep_drift = robust_steps > 0 or lowpass
-    # Without a second solve (no photoreceptor pass, no reweighting) the pixels'
-    # systems are factorised `ipar[I_LANES]` (1 or 4) at a time (_solve_lanes).
-    group = LANES if not keep_drift and ipar[I_LANES] == LANES else 1
+    # The pixels' systems are solved `ipar[I_LANES]` (1 or 4) at a time, side by
+    # side (_solve_group); each pixel of a group keeps its own state.
+    group = LANES if ipar[I_LANES] == LANES else 1
     qms = np.zeros((group, m, m))
     qvs = np.zeros((group, m))
     firsts = np.zeros((group, m), np.int64)
+    xs = np.zeros((group, m))
+    g_steps = np.zeros(group, np.int64)
+    todo = np.zeros(group, np.bool_)
+    g_k = np.zeros(group, np.int64)
+    g_phase = np.zeros(group)
+    g_off = np.zeros(group)
+    g_spec_w = np.zeros(group)
+    steps2 = np.empty((group, kmax))  # per pixel: steps of its events, …
+    traws = np.empty((group, kmax))
+    wns = np.empty((group, kmax))
+    sigmas = np.empty((group, kmax))
+    zzs = np.empty((group, kmax))
+    evrs = np.zeros((group, kmax, m))  # … its kept event rows …
+    evcs = np.zeros((group, kmax))
+    evlos = np.zeros((group, kmax), np.int64)
+    evhis = np.zeros((group, kmax), np.int64)
+    nd = group if keep_drift else 1
+    qds = np.zeros((nd, m, m))  # … and its drift part
+    qvds = np.zeros((nd, m))
     ql = np.zeros(LANES * (m * (m + 1) // 2) if group > 1 else 1)
     lfl = np.zeros(ql.size)
     invl = np.zeros(LANES * m)
@@ -840,244 +858,287 @@ def solve_pixels(
     fu = np.zeros(m, np.int64)
     ptr = np.zeros(m, np.int64)
     fail = np.zeros(LANES, np.bool_)
-    for r in range(sel.size):
-        lane = r % group
-        qm = qms[lane]
-        qv = qvs[lane]
-        first = firsts[lane]
-        pix = sel[r]
-        k = use[pix]
-        s0 = starts[pix]
-        d = lead[pix]
-        phase = -d
-        off = col_off[pix % width]
-        t_on, t_off = thr_on[pix], thr_off[pix]
-        qm[:, :] = 0.0
-        qv[:] = 0.0
-        for i in range(m):
-            first[i] = i
-        lohi[0] = m
-        lohi[1] = 0
-        # Events: steps and sweeps (from the recorded times); with a photoreceptor
-        # lag, each time moved back by d_w / Î (Î from the steps alone), kept ordered.
-        level = 0.0
-        t_max = -np.inf
-        for i in range(k):
-            tt[i] = t_sorted[s0 + i] + d
-            traw[i] = tt[i]
-            sg = 1.0 if s_sorted[s0 + i] > 0 else -1.0
-            sgn[i] = sg
-            thr[i] = t_on if sg > 0 else t_off
-            step[i] = sg * thr[i]
-            sweep_of[i] = np.int64(math.floor((tt[i] + phase) / period))
-            if noisy_model:
-                if i == 0 or sweep_of[i] != sweep_of[i - 1]:
-                    level = 0.0
-                level += step[i]
-                delay = min(par[P_DW] * math.exp(-(log_base + level)), 5000.0)
-                t_max = max(t_max, tt[i] - delay)
-                tt[i] = t_max
-        # Drift on monotone flanks and the level estimates (from the used times).
-        prev_s = 0.0
-        level = 0.0
-        peak_i = base
-        for i in range(k):
-            sg = sgn[i]
-            new = i == 0 or sweep_of[i] != sweep_of[i - 1]
-            t_ref = 0.0 if i == 0 else tt[i - 1] + eta
-            gap = max(tt[i] - t_ref, 1.0)
-            dr = 0.0
-            if release and not new and prev_s == sg:
-                dr = step[i] * min(eta / gap, 3.0)
-            drift[i] = dr
-            if new:
-                level = 0.0
-            level += step[i] + dr
-            i_hat[i] = math.exp(log_base + level)
-            peak_i = max(peak_i, i_hat[i])
-            prev_s = sg
-        s_hat = max(peak_i - base, 1e-3 * base)
-        # The band at each event (τ_i) and at the end of its refractory period
-        # (τ_i + η: the next event's reference and the anti-drift rows' "after"
-        # point), looked up once for the event and the anti-drift rows.
-        for i in range(k):
-            bt[i], ft[i] = _band_at(tt[i], phase, off, par, ntab)
-            be[i], fe[i] = _band_at(tt[i] + eta, phase, off, par, ntab)
-        b_zero, f_zero = _band_at(0.0, phase, off, par, ntab)
-        # Event rows [a(τ) - e^{σC} a(ρ); c'(1 - e^{σC})] / Î (× noise weight), kept.
-        share = 0.0
-        for i in range(k):
-            ratio = math.exp(step[i])
-            w = 1.0 / i_hat[i] if norm else 1.0
-            t_ref = 0.0 if i == 0 else tt[i - 1] + eta
-            if noisy_model:
-                gap = max(tt[i] - t_ref, 1.0)
-                slope = abs(step[i]) / gap
-                ideal = par[P_FLOOR] ** 2 + slope * slope / 6.0
-                var = par[P_SIG_C] ** 2 + 2.0 * par[P_SIG_T] ** 2 * slope * slope
-                wn[i] = math.sqrt(ideal / (ideal + var))
-                w *= wn[i]
-                sigma[i] = math.sqrt(ideal)
-                share += var / (ideal + var)
-            b0, f0 = bt[i], ft[i]
-            b1, f1 = (b_zero, f_zero) if i == 0 else (be[i - 1], fe[i - 1])
-            ri = evr[i]
+    for r0 in range(0, sel.size, group):
+        nl = min(group, sel.size - r0)
+        for lane in range(nl):
+            qm = qms[lane]
+            qv = qvs[lane]
+            first = firsts[lane]
+            step = steps2[lane]
+            traw = traws[lane]
+            wn = wns[lane]
+            sigma = sigmas[lane]
+            zz = zzs[lane]
+            evr = evrs[lane]
+            evc = evcs[lane]
+            evlo = evlos[lane]
+            evhi = evhis[lane]
+            qd = qds[lane if keep_drift else 0]
+            qvd = qvds[lane if keep_drift else 0]
+            pix = sel[r0 + lane]
+            k = use[pix]
+            s0 = starts[pix]
+            d = lead[pix]
+            phase = -d
+            off = col_off[pix % width]
+            t_on, t_off = thr_on[pix], thr_off[pix]
+            qm[:, :] = 0.0
+            qv[:] = 0.0
+            for i in range(m):
+                first[i] = i
             lohi[0] = m
             lohi[1] = 0
-            _add_band(ri, w, b0, f0, table, span_lo, span_hi, lohi)
-            _add_band(ri, -w * ratio, b1, f1, table, span_lo, span_hi, lohi)
-            evc[i] = w * base * (1.0 - ratio)
-            evlo[i] = min(lohi[0], lohi[1])
-            evhi[i] = lohi[1]
-        lohi[0] = m
-        lohi[1] = 0
-        # Anti-drift rows over each sweep's lit interval.
-        arrive = par[P_ARRIVE] - off
-        leave = par[P_LEAVE] - off
-        spacing = (leave - arrive) / g
-        w_int0 = math.sqrt(par[P_AINT] * spacing / par[P_TAU0])
-        nxt = 0
-        for s in range(sweeps):
-            t_arr = s * period - phase + arrive
-            t_lv = s * period - phase + leave
-            for j in range(g):
-                t_g = t_arr + (j + 0.5) / g * (leave - arrive)
-                while nxt < k and tt[nxt] <= t_g:
-                    nxt += 1
-                prv = nxt - 1
-                b_ev = nxt < k and sweep_of[nxt] == s
-                a_ev = prv >= 0 and tt[prv] + eta >= t_arr and sweep_of[prv] == s
-                b_time = tt[nxt] if b_ev else t_lv
-                a_time = tt[prv] + eta if a_ev else t_arr
-                span = max(b_time - a_time, 1.0)
-                sgf = min(max((t_g - a_time) / span, 0.0), 1.0)
-                i_a = base
-                if a_ev:
-                    dn = drift[prv + 1] if prv + 1 < k else 0.0
-                    i_a = i_hat[prv] * math.exp(dn)
-                i_b = i_hat[nxt] if b_ev else base
-                bump_h = 0.0
-                if peak and a_ev and b_ev and sgn[prv] * sgn[nxt] < 0.0:
-                    bump_h = sgn[prv] * math.expm1(par[P_PEAK] * thr[prv])
-                bump = 4.0 * sgf * (1.0 - sgf) * bump_h
-                bg, fg = _band_at(t_g, phase, off, par, ntab)
-                ba, fa = -1, 0.0
-                bb, fb = -1, 0.0
-                if a_ev:
-                    ba, fa = be[prv], fe[prv]
-                if b_ev:
-                    bb, fb = bt[nxt], ft[nxt]
-                if flat:
-                    f_g = _band_sum(bg, fg, tabsum)
-                    f_a = max(_band_sum(ba, fa, tabsum), 1e-9)
-                    f_b = max(_band_sum(bb, fb, tabsum), 1e-9)
-                    wa = (1.0 - sgf if b_ev else 1.0) if a_ev else 0.0
-                    wa += bump
-                    wb = (sgf if a_ev else 1.0) if b_ev else 0.0
-                    ca = wa * f_g / f_a if a_ev else 0.0
-                    cb = wb * f_g / f_b if b_ev else 0.0
-                    c_row = 0.0
-                    i_tgt = base + f_g * (
-                        wa * (i_a - base) / f_a + wb * (i_b - base) / f_b
-                    )
-                    i_tgt = max(i_tgt, base)
-                else:
-                    wa = 1.0 - sgf + bump
-                    ca = wa if a_ev else 0.0
-                    cb = sgf if b_ev else 0.0
-                    c_row = -base * bump
-                    i_tgt = max(wa * i_a + sgf * i_b, 1e-3 * base)
-                w_int = w_int0 / i_tgt if norm else w_int0
-                _add_band(row, w_int, bg, fg, table, span_lo, span_hi, lohi)
-                _add_band(row, -w_int * ca, ba, fa, table, span_lo, span_hi, lohi)
-                _add_band(row, -w_int * cb, bb, fb, table, span_lo, span_hi, lohi)
-                if lohi[1] > lohi[0]:
-                    _accumulate(row, w_int * c_row, lohi, qm, qv, first)
-                else:
-                    lohi[0] = m
-                    lohi[1] = 0
-        # Dark channels tied to their neighbours, by the noise's share of the rows.
-        if noisy_model and par[P_ADARK] > 0.0:
-            nshare = share / max(k, 1)
-            for c in range(m - 1):
-                wd2 = par[P_ADARK] * nshare * dark[c] / (s_hat * s_hat)
-                qm[c, c] += wd2
-                qm[c + 1, c + 1] += wd2
-                qm[c + 1, c] -= wd2
-                if c < first[c + 1]:
-                    first[c + 1] = c
-        if keep_drift:  # the drift part, for re-weighting or replacing the events
-            qd[:, :] = 0.0  # (read later over the final, wider envelope)
-            for i in range(m):
-                qvd[i] = qv[i]
-                for j in range(first[i], i + 1):
-                    qd[i, j] = qm[i, j]
-        for i in range(k):
-            zz[i] = 1.0
-        spec_w = par[P_ASPEC] / (s_hat * s_hat) if norm else par[P_ASPEC]
-        if group > 1:  # this pixel's system waits for its group's factorisations
-            _add_events(qm, qv, first, evr, evc, evlo, evhi, zz, k)
-            _add_priors(
-                qm, first, spec, spec_first, spec_w, par[P_RIDGE], par[P_SPEC_TRACE]
+            # Events: steps and sweeps (from the recorded times); with a photoreceptor
+            # lag, each time moved back by d_w / Î (Î from the steps alone), kept ordered.
+            level = 0.0
+            t_max = -np.inf
+            for i in range(k):
+                tt[i] = t_sorted[s0 + i] + d
+                traw[i] = tt[i]
+                sg = 1.0 if s_sorted[s0 + i] > 0 else -1.0
+                sgn[i] = sg
+                thr[i] = t_on if sg > 0 else t_off
+                step[i] = sg * thr[i]
+                sweep_of[i] = np.int64(math.floor((tt[i] + phase) / period))
+                if noisy_model:
+                    if i == 0 or sweep_of[i] != sweep_of[i - 1]:
+                        level = 0.0
+                    level += step[i]
+                    delay = min(par[P_DW] * math.exp(-(log_base + level)), 5000.0)
+                    t_max = max(t_max, tt[i] - delay)
+                    tt[i] = t_max
+            # Drift on monotone flanks and the level estimates (from the used times).
+            prev_s = 0.0
+            level = 0.0
+            peak_i = base
+            for i in range(k):
+                sg = sgn[i]
+                new = i == 0 or sweep_of[i] != sweep_of[i - 1]
+                t_ref = 0.0 if i == 0 else tt[i - 1] + eta
+                gap = max(tt[i] - t_ref, 1.0)
+                dr = 0.0
+                if release and not new and prev_s == sg:
+                    dr = step[i] * min(eta / gap, 3.0)
+                drift[i] = dr
+                if new:
+                    level = 0.0
+                level += step[i] + dr
+                i_hat[i] = math.exp(log_base + level)
+                peak_i = max(peak_i, i_hat[i])
+                prev_s = sg
+            s_hat = max(peak_i - base, 1e-3 * base)
+            # The band at each event (τ_i) and at the end of its refractory period
+            # (τ_i + η: the next event's reference and the anti-drift rows' "after"
+            # point), looked up once for the event and the anti-drift rows.
+            for i in range(k):
+                bt[i], ft[i] = _band_at(tt[i], phase, off, par, ntab)
+                be[i], fe[i] = _band_at(tt[i] + eta, phase, off, par, ntab)
+            b_zero, f_zero = _band_at(0.0, phase, off, par, ntab)
+            # Event rows [a(τ) - e^{σC} a(ρ); c'(1 - e^{σC})] / Î (× noise weight), kept.
+            share = 0.0
+            for i in range(k):
+                ratio = math.exp(step[i])
+                w = 1.0 / i_hat[i] if norm else 1.0
+                t_ref = 0.0 if i == 0 else tt[i - 1] + eta
+                if noisy_model:
+                    gap = max(tt[i] - t_ref, 1.0)
+                    slope = abs(step[i]) / gap
+                    ideal = par[P_FLOOR] ** 2 + slope * slope / 6.0
+                    var = par[P_SIG_C] ** 2 + 2.0 * par[P_SIG_T] ** 2 * slope * slope
+                    wn[i] = math.sqrt(ideal / (ideal + var))
+                    w *= wn[i]
+                    sigma[i] = math.sqrt(ideal)
+                    share += var / (ideal + var)
+                b0, f0 = bt[i], ft[i]
+                b1, f1 = (b_zero, f_zero) if i == 0 else (be[i - 1], fe[i - 1])
+                ri = evr[i]
+                lohi[0] = m
+                lohi[1] = 0
+                _add_band(ri, w, b0, f0, table, span_lo, span_hi, lohi)
+                _add_band(ri, -w * ratio, b1, f1, table, span_lo, span_hi, lohi)
+                evc[i] = w * base * (1.0 - ratio)
+                evlo[i] = min(lohi[0], lohi[1])
+                evhi[i] = lohi[1]
+            lohi[0] = m
+            lohi[1] = 0
+            # Anti-drift rows over each sweep's lit interval.
+            arrive = par[P_ARRIVE] - off
+            leave = par[P_LEAVE] - off
+            spacing = (leave - arrive) / g
+            w_int0 = math.sqrt(par[P_AINT] * spacing / par[P_TAU0])
+            nxt = 0
+            for s in range(sweeps):
+                t_arr = s * period - phase + arrive
+                t_lv = s * period - phase + leave
+                for j in range(g):
+                    t_g = t_arr + (j + 0.5) / g * (leave - arrive)
+                    while nxt < k and tt[nxt] <= t_g:
+                        nxt += 1
+                    prv = nxt - 1
+                    b_ev = nxt < k and sweep_of[nxt] == s
+                    a_ev = prv >= 0 and tt[prv] + eta >= t_arr and sweep_of[prv] == s
+                    b_time = tt[nxt] if b_ev else t_lv
+                    a_time = tt[prv] + eta if a_ev else t_arr
+                    span = max(b_time - a_time, 1.0)
+                    sgf = min(max((t_g - a_time) / span, 0.0), 1.0)
+                    i_a = base
+                    if a_ev:
+                        dn = drift[prv + 1] if prv + 1 < k else 0.0
+                        i_a = i_hat[prv] * math.exp(dn)
+                    i_b = i_hat[nxt] if b_ev else base
+                    bump_h = 0.0
+                    if peak and a_ev and b_ev and sgn[prv] * sgn[nxt] < 0.0:
+                        bump_h = sgn[prv] * math.expm1(par[P_PEAK] * thr[prv])
+                    bump = 4.0 * sgf * (1.0 - sgf) * bump_h
+                    bg, fg = _band_at(t_g, phase, off, par, ntab)
+                    ba, fa = -1, 0.0
+                    bb, fb = -1, 0.0
+                    if a_ev:
+                        ba, fa = be[prv], fe[prv]
+                    if b_ev:
+                        bb, fb = bt[nxt], ft[nxt]
+                    if flat:
+                        f_g = _band_sum(bg, fg, tabsum)
+                        f_a = max(_band_sum(ba, fa, tabsum), 1e-9)
+                        f_b = max(_band_sum(bb, fb, tabsum), 1e-9)
+                        wa = (1.0 - sgf if b_ev else 1.0) if a_ev else 0.0
+                        wa += bump
+                        wb = (sgf if a_ev else 1.0) if b_ev else 0.0
+                        ca = wa * f_g / f_a if a_ev else 0.0
+                        cb = wb * f_g / f_b if b_ev else 0.0
+                        c_row = 0.0
+                        i_tgt = base + f_g * (
+                            wa * (i_a - base) / f_a + wb * (i_b - base) / f_b
+                        )
+                        i_tgt = max(i_tgt, base)
+                    else:
+                        wa = 1.0 - sgf + bump
+                        ca = wa if a_ev else 0.0
+                        cb = sgf if b_ev else 0.0
+                        c_row = -base * bump
+                        i_tgt = max(wa * i_a + sgf * i_b, 1e-3 * base)
+                    w_int = w_int0 / i_tgt if norm else w_int0
+                    _add_band(row, w_int, bg, fg, table, span_lo, span_hi, lohi)
+                    _add_band(row, -w_int * ca, ba, fa, table, span_lo, span_hi, lohi)
+                    _add_band(row, -w_int * cb, bb, fb, table, span_lo, span_hi, lohi)
+                    if lohi[1] > lohi[0]:
+                        _accumulate(row, w_int * c_row, lohi, qm, qv, first)
+                    else:
+                        lohi[0] = m
+                        lohi[1] = 0
+            # Dark channels tied to their neighbours, by the noise's share of the rows.
+            if noisy_model and par[P_ADARK] > 0.0:
+                nshare = share / max(k, 1)
+                for c in range(m - 1):
+                    wd2 = par[P_ADARK] * nshare * dark[c] / (s_hat * s_hat)
+                    qm[c, c] += wd2
+                    qm[c + 1, c + 1] += wd2
+                    qm[c + 1, c] -= wd2
+                    if c < first[c + 1]:
+                        first[c + 1] = c
+            if keep_drift:  # the drift part, for re-weighting or replacing the events
+                qd[:, :] = 0.0  # (read later over the final, wider envelope)
+                for i in range(m):
+                    qvd[i] = qv[i]
+                    for j in range(first[i], i + 1):
+                        qd[i, j] = qm[i, j]
+            for i in range(k):
+                zz[i] = 1.0
+            spec_w = par[P_ASPEC] / (s_hat * s_hat) if norm else par[P_ASPEC]
+            g_k[lane] = k
+            g_phase[lane] = phase
+            g_off[lane] = off
+            g_spec_w[lane] = spec_w
+            _assemble(
+                False, qm, qv, qd, qvd, first, evr, evc, evlo, evhi, zz, k, spec,
+                spec_first, spec_w, par,
             )  # fmt: skip
-            _clear_events(evr, evlo, evhi, k)
-            if lane == group - 1 or r == sel.size - 1:
-                _finish_lanes(
-                    r - lane, lane + 1, qms, qvs, firsts, ql, lfl, invl, qvl, xl, fu,
-                    ptr, fail, free, lf, inv, x, p, gr, par, max_iters, out_x,
-                    out_kkt, out_steps,
-                )  # fmt: skip
-            continue
-        steps = _assemble_solve(
-            False, qm, qv, qd, qvd, first, evr, evc, evlo, evhi, zz, k, spec,
-            spec_first, spec_w, par, free, lf, inv, x, p, gr, max_iters,
+        # The group's pixels solved together; then each pixel's further passes.
+        for lane in range(group):
+            todo[lane] = lane < nl
+        _solve_group(
+            nl, todo, qms, qvs, firsts, xs, g_steps, ql, lfl, invl, qvl, xl, fu, ptr,
+            fail, free, lf, inv, p, gr, par, max_iters,
         )  # fmt: skip
         # The photoreceptor model linearised at the answer replaces the delay-shifted
         # event rows (Gauss–Newton passes).
         for _ in range(lp_passes):
-            if steps < 0:
-                break
-            _clear_events(evr, evlo, evhi, k)
-            _lowpass_rows(
-                x, traw, step, wn, k, phase, off, par, ipar, table, span_lo, span_hi,
-                vv, fq, qpos, qi0, order, evr, evc, evlo, evhi, lp_b, lp_f,
-            )  # fmt: skip
-            for i in range(k):
-                zz[i] = 1.0
-            steps = _assemble_solve(
-                True, qm, qv, qd, qvd, first, evr, evc, evlo, evhi, zz, k, spec,
-                spec_first, spec_w, par, free, lf, inv, x, p, gr, max_iters,
+            for lane in range(nl):
+                todo[lane] = g_steps[lane] >= 0
+                if not todo[lane]:
+                    continue
+                k = g_k[lane]
+                _clear_events(evrs[lane], evlos[lane], evhis[lane], k)
+                _lowpass_rows(
+                    xs[lane], traws[lane], steps2[lane], wns[lane], k, g_phase[lane],
+                    g_off[lane], par, ipar, table, span_lo, span_hi, vv, fq, qpos, qi0,
+                    order, evrs[lane], evcs[lane], evlos[lane], evhis[lane], lp_b, lp_f,
+                )  # fmt: skip
+                zz = zzs[lane]
+                for i in range(k):
+                    zz[i] = 1.0
+                _assemble(
+                    True, qms[lane], qvs[lane], qds[lane], qvds[lane], firsts[lane],
+                    evrs[lane], evcs[lane], evlos[lane], evhis[lane], zz, k, spec,
+                    spec_first, g_spec_w[lane], par,
+                )  # fmt: skip
+            _solve_group(
+                nl, todo, qms, qvs, firsts, xs, g_steps, ql, lfl, invl, qvl, xl, fu, ptr,
+                fail, free, lf, inv, p, gr, par, max_iters,
             )  # fmt: skip
         # Robust reweighting: rows far outside their noise count linearly (Huber)
-        # or not at all.
+        # or not at all; a pixel stops when none is far out.
+        for lane in range(nl):
+            todo[lane] = g_steps[lane] >= 0
         for _ in range(robust_steps):
-            if steps < 0:
+            more = False
+            for lane in range(nl):
+                todo[lane] = todo[lane] and g_steps[lane] >= 0
+                if not todo[lane]:
+                    continue
+                k = g_k[lane]
+                x = xs[lane]
+                evr = evrs[lane]
+                evc = evcs[lane]
+                evlo = evlos[lane]
+                evhi = evhis[lane]
+                sigma = sigmas[lane]
+                zz = zzs[lane]
+                for i in range(k):  # residuals in standard deviations of their rows
+                    ri = evr[i]
+                    zi = evc[i]
+                    for j in range(evlo[i], evhi[i]):
+                        zi += ri[j] * x[j]
+                    absz[i] = abs(zi / sigma[i])
+                med = np.median(absz[:k]) if k > 0 else 0.0
+                scale = max(1.4826 * med, 1.0)
+                any_big = False
+                for i in range(k):
+                    a = absz[i] / scale
+                    u = 1.0
+                    if a > par[P_RC]:
+                        any_big = True
+                        u = math.sqrt(par[P_RC] / a)
+                    if a > par[P_REJECT]:
+                        u = 0.0
+                    zz[i] = u  # the rows' weights
+                if not any_big:
+                    todo[lane] = False
+                    continue
+                more = True
+                _assemble(
+                    True, qms[lane], qvs[lane], qds[lane], qvds[lane], firsts[lane], evr,
+                    evc, evlo, evhi, zz, k, spec, spec_first, g_spec_w[lane], par,
+                )  # fmt: skip
+            if not more:
                 break
-            for i in range(k):  # residuals in standard deviations of their rows
-                ri = evr[i]
-                zi = evc[i]
-                for j in range(evlo[i], evhi[i]):
-                    zi += ri[j] * x[j]
-                absz[i] = abs(zi / sigma[i])
-            med = np.median(absz[:k]) if k > 0 else 0.0
-            scale = max(1.4826 * med, 1.0)
-            any_big = False
-            for i in range(k):
-                a = absz[i] / scale
-                u = 1.0
-                if a > par[P_RC]:
-                    any_big = True
-                    u = math.sqrt(par[P_RC] / a)
-                if a > par[P_REJECT]:
-                    u = 0.0
-                zz[i] = u  # the rows' weights
-            if not any_big:
-                break
-            steps = _assemble_solve(
-                True, qm, qv, qd, qvd, first, evr, evc, evlo, evhi, zz, k, spec,
-                spec_first, spec_w, par, free, lf, inv, x, p, gr, max_iters,
+            _solve_group(
+                nl, todo, qms, qvs, firsts, xs, g_steps, ql, lfl, invl, qvl, xl, fu, ptr,
+                fail, free, lf, inv, p, gr, par, max_iters,
             )  # fmt: skip
-        _clear_events(evr, evlo, evhi, k)  # for the next pixel
-        _write_answer(
-            r, steps, qm, first, qv, x, gr, out_x, out_kkt, out_steps
-        )  # fmt: skip
+        for lane in range(nl):
+            _clear_events(evrs[lane], evlos[lane], evhis[lane], g_k[lane])  # next pixel
+            _write_answer(
+                r0 + lane, g_steps[lane], qms[lane], firsts[lane], qvs[lane], xs[lane],
+                gr, out_x, out_kkt, out_steps,
+            )  # fmt: skip

@@ -104,32 +104,58 @@ def test_active_set_steps_match(captures):
     np.testing.assert_array_equal(steps, steps2)
 
 
-@pytest.mark.parametrize("scene", ["colorchecker", "peaks"])
-def test_lanes_equal_one_pixel_at_a_time(captures, scene):
-    """Four pixels factorised side by side (the default) give the one-pixel kernel's
-    answers and steps, also for a last group of fewer than four and for pixels that
-    need active-set steps (peaks)."""
-    rig, events, info = captures[scene]
+def _lanes_1_and_4(rig, events, info, sweeps):
+    """The kernel's answers with one pixel at a time and with four side by side, on
+    the pixels with events but the last one or two (a last group of three)."""
     h, w = SIZE
-    counts, starts, t, s = _fused_lists(rig, events)
-    sel = np.flatnonzero(counts)[:-1]  # 47 pixels: a group of three at the end
+    noise = _pipeline.noise_model(rig)
+    t0 = int(events.trigger_t_us[0])
+    screened, _, _ = _pipeline.screen_events(events, rig, t0, noise, sweeps)
+    from evhsi_jax._reconstruct._pixels import pixel_lists
+
+    counts, starts, t, s = pixel_lists(screened, t0)
+    sel = np.flatnonzero(counts)
+    sel = sel[: 4 * ((sel.size - 3) // 4) + 3]
     answers = []
     for lanes in (1, 4):
         prob = _fused.FusedProblem(
             rig, _pipeline.channel_table(rig), ProblemConfig(),
-            _pipeline.solver_spec("auto"), w, np.asarray(rig.column_offsets(w)), 2,
-            lanes=lanes,
+            _pipeline.solver_spec("auto"), w, np.asarray(rig.column_offsets(w)),
+            sweeps, noise, lanes=lanes,
         )  # fmt: skip
         answers.append(_fused.solve_fused(
             prob, sel, starts, counts, t, s, np.zeros(h * w),
             info.threshold_on.reshape(-1), info.threshold_off.reshape(-1), threads=1,
         ))  # fmt: skip
+    return answers
+
+
+def _assert_same_answers(answers):
     (x1, kkt1, steps1), (x4, kkt4, steps4) = answers
-    assert sel.size % 4 == 3 and np.all(steps1 >= 0)
-    assert (steps1.max() > 0) == (scene == "peaks")
     np.testing.assert_array_equal(steps4, steps1)
     np.testing.assert_allclose(x4, x1, rtol=0, atol=1e-11 * np.abs(x1).max())
     np.testing.assert_allclose(kkt4, kkt1, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("scene", ["colorchecker", "peaks"])
+def test_lanes_equal_one_pixel_at_a_time(captures, scene):
+    """Four pixels solved side by side (the default) give the one-pixel kernel's
+    answers and steps, also for a last group of fewer than four and for pixels that
+    need active-set steps (peaks)."""
+    rig, events, info = captures[scene]
+    answers = _lanes_1_and_4(rig, events, info, 2)
+    steps1 = answers[0][2]
+    assert np.all(steps1 >= 0) and (steps1.max() > 0) == (scene == "peaks")
+    _assert_same_answers(answers)
+
+
+def test_lanes_equal_one_pixel_at_a_time_noise_aware():
+    """The same with the noise-aware problem of the realistic preset: each pixel of
+    a group keeps its own event rows, photoreceptor pass and reweighting."""
+    rig = ev.Rig(sensor="realistic")
+    scene = ev.load_scene("colorchecker", SIZE)
+    events, info = ev.simulate(scene, rig, sweeps=1, key=jr.key(7), return_info=True)
+    _assert_same_answers(_lanes_1_and_4(rig, events, info, 1))
 
 
 def test_lane_solver_flags_a_failed_lane():
