@@ -13,7 +13,9 @@ per pixel once (today's tree). Each kernel (`_reconstruct/_fused_jit.py` of
 each kernel once per round. The earlier kernel must take the same arguments as
 today's `solve_pixels` (true since the kernel's `par`/`ipar` layout of 2026-11).
 
-Printed and written: µs per pixel (minimum and median of the rounds), the largest
+Printed and written: µs per pixel (minimum and median of the rounds), the ratio of
+the two kernels' times in each round and its median (each round runs both back to
+back, so this ratio is the least exposed to the machine's drift), the largest
 difference between the two answers, the same run's float32 matmul GFLOP/s.
 
     python experiments/bench_kernel_ab.py --old 1c1a37c [--sensor realistic]
@@ -132,6 +134,12 @@ def main():
         print(f"{k} ({args.old if k == 'old' else 'working tree'}): "
               f"{min(us):.1f} µs/px (median {statistics.median(us):.1f})")  # fmt: skip
     ratio = rows["old"]["us_per_px_median"] / rows["new"]["us_per_px_median"]
+    # Each round times both kernels back to back: the per-round ratio is less
+    # exposed to the machine's drift between rounds than the ratio of medians.
+    per_round = [a / b for a, b in zip(times["old"], times["new"])]
+    ratio_rounds = statistics.median(per_round)
+    print(f"per-round old/new: median {ratio_rounds:.2f}x "
+          f"({', '.join(f'{v:.2f}' for v in per_round)})")  # fmt: skip
     print(f"old/new {ratio:.2f}x; max |x_new - x_old| {dx:.2e}; "
           f"{sel.size} pixels, {args.threads} thread(s), sensor {args.sensor}; "
           f"float32 matmul {gflops:.1f} GFLOP/s")  # fmt: skip
@@ -139,7 +147,9 @@ def main():
         Path(args.out).write_text(json.dumps({
             "old": args.old, "sensor": args.sensor, "size": [h, w],
             "threads": args.threads, "pixels": int(sel.size), "rows": rows,
-            "median_ratio_old_over_new": ratio, "max_abs_diff": dx,
+            "median_ratio_old_over_new": ratio,
+            "per_round_ratio_old_over_new": per_round,
+            "median_per_round_ratio": ratio_rounds, "max_abs_diff": dx,
             "matmul_gflops": gflops,
         }, indent=2))  # fmt: skip
 
