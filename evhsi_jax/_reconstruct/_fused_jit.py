@@ -14,9 +14,9 @@ event rows and drift part, and the group is solved together again after each
 photoreceptor pass and reweighting (a pixel whose reweighting has converged sits out).
 
 Imported on first use (numba). Marked `no_type_check` so the jaxtyping import hook of
-the test suite leaves it to numba. The per-row helpers are inlined; `_assemble_solve`
-(called three times), `_box_qp`, `_solve_lanes` and `_lowpass_rows` are compiled as
-functions of their own: inlining them too was no faster on two threads in a
+the test suite leaves it to numba. The per-row helpers are inlined; `_assemble`
+(called up to three times per pixel), `_box_qp`, `_solve_lanes` and `_lowpass_rows` are
+compiled as functions of their own: inlining them too was no faster on two threads in a
 development check and doubled the first compilation (~55 s against ~27 s, once per
 install: numba caches it).
 """
@@ -370,6 +370,17 @@ def _box_qp(qm, qv, first, free, lf, inv, x, p, gr, tol, max_iters):
 
 @njit(inline=True)
 @no_type_check
+def _lane_pivot(d, fail, lane):
+    """1/√d for a lane's pivot d; a pivot that is not positive marks the lane failed
+    and counts as 1 (its factorisation carries on, unused)."""
+    if not d > 0.0:
+        fail[lane] = True
+        return 1.0
+    return 1.0 / math.sqrt(d)
+
+
+@njit(inline=True)
+@no_type_check
 def _lane_factor(ql, ptr, fu, lf, inv, fail, m):
     """:func:`_factor` of four systems at once, all free, in the lane layout of
     :func:`_solve_lanes`: lane l of entry (i, j) at `4 (ptr[i] - fu[i] + j) + l`.
@@ -411,23 +422,11 @@ def _lane_factor(ql, ptr, fu, lf, inv, fail, m):
             d1 -= v1 * v1
             d2 -= v2 * v2
             d3 -= v3 * v3
-        if not d0 > 0.0:
-            fail[0] = True
-            d0 = 1.0
-        if not d1 > 0.0:
-            fail[1] = True
-            d1 = 1.0
-        if not d2 > 0.0:
-            fail[2] = True
-            d2 = 1.0
-        if not d3 > 0.0:
-            fail[3] = True
-            d3 = 1.0
         c = _u(4 * i)
-        inv[c] = 1.0 / math.sqrt(d0)
-        inv[c + _u(1)] = 1.0 / math.sqrt(d1)
-        inv[c + _u(2)] = 1.0 / math.sqrt(d2)
-        inv[c + _u(3)] = 1.0 / math.sqrt(d3)
+        inv[c] = _lane_pivot(d0, fail, 0)
+        inv[c + _u(1)] = _lane_pivot(d1, fail, 1)
+        inv[c + _u(2)] = _lane_pivot(d2, fail, 2)
+        inv[c + _u(3)] = _lane_pivot(d3, fail, 3)
 
 
 @njit(inline=True)
