@@ -306,16 +306,18 @@ def _add_priors(qm, first, spec, spec_first, spec_w, ridge_rel, spec_trace):
 
 @njit
 @no_type_check
-def _box_qp(qm, qv, first, free, lf, inv, x, p, gr, tol, max_iters):
-    """min ½xᵀQx + qᵀx, x ≥ 0: the unconstrained minimiser, then the primal
-    active-set steps of :func:`._solvers.active_set_step` where a bound is violated.
-    Returns the steps taken, −1 when a factorisation failed."""
+def _box_qp(qm, qv, first, free, lf, inv, x, p, gr, tol, max_iters, have_x):
+    """min ½xᵀQx + qᵀx, x ≥ 0: the unconstrained minimiser (already in `x` when
+    `have_x`), then the primal active-set steps of :func:`._solvers.active_set_step`
+    where a bound is violated. Returns the steps taken, −1 when a factorisation
+    failed."""
     m = qv.size
     for i in range(m):
         free[i] = True
-    if not _factor(qm, first, free, lf, inv):
-        return -1
-    _solve(lf, inv, first, free, qv, x)
+    if not have_x:
+        if not _factor(qm, first, free, lf, inv):
+            return -1
+        _solve(lf, inv, first, free, qv, x)
     neg = False
     for i in range(m):
         if x[i] < 0.0:
@@ -728,15 +730,17 @@ def _solve_group(
 ):  # fmt: skip
     """The box QPs of the group's systems `qms[:nl]` marked in `todo`, answers into
     `xs`, steps into `steps` (−1: a factorisation failed). One system: :func:`_box_qp`.
-    Four: their unconstrained minimisers side by side (:func:`_solve_lanes`); a pixel
-    whose minimiser has a negative channel (or whose factorisation failed) then runs
-    :func:`_box_qp` on its own, which begins with the same minimiser."""
+    Four: their unconstrained minimisers side by side (:func:`_solve_lanes`), from
+    which each pixel's :func:`_box_qp` goes on (its active-set steps, if a channel is
+    negative); a pixel whose lane factorisation failed runs `_box_qp` from the start,
+    as the one-pixel path does."""
     m = qvs.shape[1]
     tol = par[P_TOL]
     if qms.shape[0] == 1:
         if todo[0]:
             steps[0] = _box_qp(
-                qms[0], qvs[0], firsts[0], free, lf, inv, xs[0], p, gr, tol, max_iters
+                qms[0], qvs[0], firsts[0], free, lf, inv, xs[0], p, gr, tol,
+                max_iters, False,
             )  # fmt: skip
         return
     _solve_lanes(qms, qvs, firsts, nl, ql, lfl, invl, qvl, xl, fu, ptr, fail)
@@ -744,17 +748,12 @@ def _solve_group(
         if not todo[lane]:
             continue
         x = xs[lane]
-        neg = fail[lane]
         for i in range(m):
-            v = xl[4 * i + lane]
-            neg = neg or not v >= 0.0  # (NaN too: _box_qp keeps the 1-pixel path's)
-            x[i] = max(v, 0.0)
-        steps[lane] = 0
-        if neg:
-            steps[lane] = _box_qp(
-                qms[lane], qvs[lane], firsts[lane], free, lf, inv, x, p, gr, tol,
-                max_iters,
-            )  # fmt: skip
+            x[i] = xl[4 * i + lane]
+        steps[lane] = _box_qp(
+            qms[lane], qvs[lane], firsts[lane], free, lf, inv, x, p, gr, tol,
+            max_iters, not fail[lane],
+        )  # fmt: skip
 
 
 @njit
