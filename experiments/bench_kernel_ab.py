@@ -5,20 +5,22 @@ machine whose speed drifts by tens of percent within an hour that hides a change
 kernel. Here both kernels solve the same pixels in the same process, alternately:
 
 Setup: one sweep of the ColorChecker at `--size` (default 96×144), paper rig with
-the `--sensor` preset (`ideal` or `realistic`: then the noise-aware problem with the
-photoreceptor rows), the true per-pixel thresholds; the events screened and listed
-per pixel once (today's tree). Each kernel (`_reconstruct/_fused_jit.py` of
-`--old`, taken with `git show`, and of the working tree) solves all pixels on
-`--threads` threads: one warm-up call (numba compiles), then `--repeats` rounds,
-each kernel once per round. The earlier kernel must take the same arguments as
-today's `solve_pixels` (true since the kernel's `par`/`ipar` layout of 2026-11).
+the `--sensor` preset (`ideal`; `noise`: threshold noise 0.01 and 5 µs jitter, then
+the noise-aware problem with its weights and reweighting; `realistic`: also the
+photoreceptor rows), the true rig as the calibration, the true per-pixel thresholds;
+the events screened and listed per pixel once (today's tree). Each kernel
+(`_reconstruct/_fused_jit.py` of `--old`, taken with `git show`, and of the working
+tree) solves all pixels on `--threads` threads: one warm-up call (numba compiles),
+then `--repeats` rounds, each kernel once per round. The earlier kernel must take
+the same arguments as today's `solve_pixels` (true since the kernel's `par`/`ipar`
+layout of 2026-11).
 
 Printed and written: µs per pixel (minimum and median of the rounds), the ratio of
 the two kernels' times in each round and its median (each round runs both back to
 back, so this ratio is the least exposed to the machine's drift), the largest
 difference between the two answers, the same run's float32 matmul GFLOP/s.
 
-    python experiments/bench_kernel_ab.py --old 1c1a37c [--sensor realistic]
+    python experiments/bench_kernel_ab.py --old 1c1a37c [--sensor ideal|noise|realistic]
         [--size 96x144] [--repeats 5] [--threads 1] [--out PATH]
 """
 
@@ -64,7 +66,9 @@ def load_kernel(source: str, name: str, folder: Path):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--old", required=True, help="git revision of the earlier kernel")
-    ap.add_argument("--sensor", default="realistic", choices=["ideal", "realistic"])
+    ap.add_argument(
+        "--sensor", default="realistic", choices=["ideal", "noise", "realistic"]
+    )
     ap.add_argument("--size", default="96x144")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--threads", type=int, default=1)
@@ -78,7 +82,10 @@ def main():
     new_src = (root / KERNEL).read_text()
 
     h, w = ev.forward.parse_size(args.size)
-    rig = ev.Rig(sensor=args.sensor)
+    if args.sensor == "noise":  # threshold noise and jitter: weights, reweighting
+        rig = ev.Rig(threshold_noise=0.01, timestamp_jitter_us=5.0)
+    else:
+        rig = ev.Rig(sensor=args.sensor)
     scene = ev.load_scene("colorchecker", (h, w))
     events, info = ev.simulate(scene, rig, sweeps=1, key=jr.key(0), return_info=True)
     t0 = int(events.trigger_t_us[0]) if events.trigger_t_us.size else 0
