@@ -79,6 +79,9 @@ class FusedProblem:
                  lanes: int | None = None):  # fmt: skip
         from ._fused_jit import LANES, N_PAR  # (numba: only when the fused path runs)
 
+        if lanes not in (None, 1, LANES):
+            raise ValueError(f"lanes must be 1 or {LANES}, got {lanes!r}")
+
         tab = np.asarray(table.values, np.float64)
         m = tab.shape[1]
         peak = float(np.max(np.abs(tab))) if tab.size else 0.0
@@ -121,7 +124,7 @@ class FusedProblem:
             [sweeps, cfg.int_points, INT_TARGETS.index(cfg.int_target),
              int(cfg.normalise), int(rig.reset_mode == "release"), spec.iters,
              int(noise is not None), cfg.robust_steps, cfg.lowpass_passes,
-             int(rig.samples_per_sweep), LANES if lanes is None else int(lanes)],
+             int(rig.samples_per_sweep), LANES if lanes is None else lanes],
             np.int64,
         )  # fmt: skip
         # Dark-channel prior: per neighbour difference, ½(dim_k + dim_k+1), dim the

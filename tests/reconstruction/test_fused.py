@@ -109,11 +109,7 @@ def _lanes_1_and_4(rig, events, info, sweeps):
     the pixels with events but the last one or two (a last group of three)."""
     h, w = SIZE
     noise = _pipeline.noise_model(rig)
-    t0 = int(events.trigger_t_us[0])
-    screened, _, _ = _pipeline.screen_events(events, rig, t0, noise, sweeps)
-    from evhsi_jax._reconstruct._pixels import pixel_lists
-
-    counts, starts, t, s = pixel_lists(screened, t0)
+    counts, starts, t, s = _fused_lists(rig, events, noise, sweeps)
     sel = np.flatnonzero(counts)
     sel = sel[: 4 * ((sel.size - 3) // 4) + 3]
     answers = []
@@ -190,9 +186,9 @@ def test_lane_solver_flags_a_failed_lane():
     np.testing.assert_array_equal(xl[3::4], xl[2::4])  # the repeated last system
 
 
-def _fused_lists(rig, events):
+def _fused_lists(rig, events, noise=None, sweeps=2):
     t0 = int(events.trigger_t_us[0])
-    screened, _, _ = _pipeline.screen_events(events, rig, t0, None, 2)
+    screened, _, _ = _pipeline.screen_events(events, rig, t0, noise, sweeps)
     from evhsi_jax._reconstruct._pixels import pixel_lists
 
     return pixel_lists(screened, t0)
