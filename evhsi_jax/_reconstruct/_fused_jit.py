@@ -491,61 +491,314 @@ def _lane_solve(lf, ptr, fu, inv, qv, out, m):
         out[c + _u(3)] = x3
         pi = ptr[i] - fu[i]
         for k in range(_u(fu[i]), _u(i)):
-            a = _u(4) * (_u(pi) + k)
-            o = _u(4) * k
-            out[o] -= lf[a] * x0
-            out[o + _u(1)] -= lf[a + _u(1)] * x1
-            out[o + _u(2)] -= lf[a + _u(2)] * x2
-            out[o + _u(3)] -= lf[a + _u(3)] * x3
+            _lane_update(out, _u(4) * k, lf, _u(4) * (_u(pi) + k), -x0, -x1, -x2, -x3)
+
+
+# The lane layout: four pixels' systems side by side, lane l of entry (i, j) of an
+# M×M matrix at 4 (i M + j) + l, of a vector's entry i at 4 i + l; each pixel's part
+# is zero outside the group's union envelope `fu` (the first column in use in each
+# row, the smallest over the four). Lanes ≥ nl repeat lane nl − 1 (their answers are
+# not used). The functions on it are compiled with numba's SLP vectoriser
+# (`njit(slp=True)`): without it the four lanes' operations stay scalar.
+
+
+@njit(inline=True)
+@no_type_check
+def _lane_update(dst, d, src, s, a0, a1, a2, a3):
+    """dst[d + l] += a_l src[s + l] for the four lanes l, every load before the first
+    store: `dst` and `src` may be the same array as far as LLVM knows, and with a
+    store between the loads its SLP vectoriser leaves the four lanes scalar (it did
+    in the remainder loops, which run most of the time for rows this short)."""
+    s0 = src[s]
+    s1 = src[s + _u(1)]
+    s2 = src[s + _u(2)]
+    s3 = src[s + _u(3)]
+    v0 = dst[d]
+    v1 = dst[d + _u(1)]
+    v2 = dst[d + _u(2)]
+    v3 = dst[d + _u(3)]
+    dst[d] = v0 + a0 * s0
+    dst[d + _u(1)] = v1 + a1 * s1
+    dst[d + _u(2)] = v2 + a2 * s2
+    dst[d + _u(3)] = v3 + a3 * s3
+
+
+@njit(inline=True)
+@no_type_check
+def _lane_index(nl):
+    """The pixel each of the four lanes carries (the last one repeated)."""
+    top = nl - 1
+    return 0, min(1, top), min(2, top), min(3, top)
 
 
 @njit(slp=True)
 @no_type_check
-def _solve_lanes(qms, qvs, firsts, nl, ql, lf, inv, qvl, xl, fu, ptr, fail):
-    """The unconstrained minimisers of the systems `qms[:nl]`, `qvs[:nl]` (envelopes
-    `firsts`; nl ≤ 4) side by side: each lane of a vector register carries one
-    pixel's factorisation and solves, so the short loops of the envelope Cholesky
-    (whose cost is their fixed overhead, not their arithmetic) run once for four
-    pixels. Over the union of the envelopes, packed row by row. Lane l's answer is
-    `xl[4 i + l]`; `fail[l]` when its factorisation failed. Lanes ≥ nl repeat the
-    last system (their answers are not used). numba vectorises the four lanes'
-    operations only with its SLP vectoriser (`njit(slp=True)`)."""
-    m = qvs.shape[1]
-    top = nl - 1
-    l1 = min(1, top)
-    l2 = min(2, top)
-    l3 = min(3, top)
-    tot = 0
+def _lane_clear(ql, qvl, qdl, qvdl, keep, fu, m):
+    """Zero Q and q (and the kept drift part, if `keep`) over the envelope `fu` of the
+    previous group; reset the envelope to the diagonal."""
     for i in range(m):
-        f = min(min(firsts[0, i], firsts[l1, i]), min(firsts[l2, i], firsts[l3, i]))
-        fu[i] = f
-        ptr[i] = tot
-        tot += i + 1 - f
-    q0 = qms[0]
-    q1 = qms[l1]
-    q2 = qms[l2]
-    q3 = qms[l3]
+        for j in range(_u(4 * (i * m + fu[i])), _u(4 * (i * m + i + 1))):
+            ql[j] = 0.0
+        for j in range(_u(4 * i), _u(4 * i + 4)):
+            qvl[j] = 0.0
+        if keep:
+            for j in range(_u(4 * (i * m + fu[i])), _u(4 * (i * m + i + 1))):
+                qdl[j] = 0.0
+            for j in range(_u(4 * i), _u(4 * i + 4)):
+                qvdl[j] = 0.0
+        fu[i] = i
+
+
+@njit(slp=True)
+@no_type_check
+def _lane_copy(src, srcv, dst, dstv, fu, m):
+    """dst, dstv ← src, srcv over the envelope `fu` (keeping or restoring the drift
+    part)."""
     for i in range(m):
-        c = _u(4 * i)
-        qvl[c] = qvs[0, i]
-        qvl[c + _u(1)] = qvs[l1, i]
-        qvl[c + _u(2)] = qvs[l2, i]
-        qvl[c + _u(3)] = qvs[l3, i]
-        pi = _u(ptr[i] - fu[i])
-        r0 = q0[i]
-        r1 = q1[i]
-        r2 = q2[i]
-        r3 = q3[i]
-        for j in range(_u(fu[i]), _u(i + 1)):
-            e = _u(4) * (pi + j)
-            ql[e] = r0[j]
-            ql[e + _u(1)] = r1[j]
-            ql[e + _u(2)] = r2[j]
-            ql[e + _u(3)] = r3[j]
+        for j in range(_u(4 * (i * m + fu[i])), _u(4 * (i * m + i + 1))):
+            dst[j] = src[j]
+        for j in range(_u(4 * i), _u(4 * i + 4)):
+            dstv[j] = srcv[j]
+
+
+@njit(inline=True)
+@no_type_check
+def _lane_axpy(q0, q1, q2, q3, src, s, a0, a1, a2, a3):
+    """(q_l + a_l src[s + l]) for the four lanes l."""
+    return (
+        q0 + a0 * src[s], q1 + a1 * src[s + _u(1)], q2 + a2 * src[s + _u(2)],
+        q3 + a3 * src[s + _u(3)],
+    )  # fmt: skip
+
+
+@njit(inline=True)
+@no_type_check
+def _lane_coefs(sw, r, rl, e):
+    """The four lanes' w² r_i of row r of a chunk (`_lane_rows`)."""
+    k = _u(4 * r)
+    return (
+        sw[k] * rl[e], sw[k + _u(1)] * rl[e + _u(1)], sw[k + _u(2)] * rl[e + _u(2)],
+        sw[k + _u(3)] * rl[e + _u(3)],
+    )  # fmt: skip
+
+
+#: Rows added to Q per pass over it in `_lane_rows`.
+ROWS_PER_PASS = 4
+
+
+@njit(slp=True)
+@no_type_check
+def _lane_rows(rows, los, his, cs, ws, counts, nl, nrows, rl, sw, ql, qvl, fu, m):
+    """Q += w² r rᵀ (lower triangle), q += w² r c for the rows j < nrows of the
+    group's pixels, four side by side: row j of pixel l is `rows[l, j]`, zero outside
+    `[los[l, j], his[l, j])`, with weight `ws[l, j]` and constant `cs[l, j]`; a pixel
+    has no row j ≥ `counts[l]` (its row buffer is zero there).
+
+    Four rows of the four pixels at a time (one load and store of Q for four rows:
+    the loops are short, and their overhead is most of the cost), over the union of
+    their spans, each entry updated row after row: per lane the same operations in
+    the same order as :func:`_acc_stored`, plus products with exact zeros, so each
+    pixel's Q is the one-pixel kernel's. `rl` (16 M) and `sw` (32) are work space:
+    the chunk's rows interleaved by lane, their w² and constants."""
+    l0, l1, l2, l3 = _lane_index(nl)
+    m4 = _u(4 * m)
+    for j0 in range(0, nrows, ROWS_PER_PASS):
+        lo = m
+        hi = 0
+        for j in range(j0, min(j0 + ROWS_PER_PASS, nrows)):
+            for lane in (l0, l1, l2, l3):
+                if j < counts[lane] and his[lane, j] > los[lane, j]:
+                    lo = min(lo, los[lane, j])
+                    hi = max(hi, his[lane, j])
+        if hi <= lo:
+            continue
+        for r in range(ROWS_PER_PASS):
+            j = j0 + r
+            o = _u(r) * m4
+            if j >= nrows:
+                for c in range(_u(4 * lo), _u(4 * hi)):
+                    rl[o + c] = 0.0
+                for lane in range(4):
+                    sw[4 * r + lane] = 0.0
+                    sw[16 + 4 * r + lane] = 0.0
+                continue
+            r0 = rows[l0, j]
+            r1 = rows[l1, j]
+            r2 = rows[l2, j]
+            r3 = rows[l3, j]
+            for c in range(_u(lo), _u(hi)):
+                e = o + _u(4) * c
+                rl[e] = r0[c]
+                rl[e + _u(1)] = r1[c]
+                rl[e + _u(2)] = r2[c]
+                rl[e + _u(3)] = r3[c]
+            for lane in range(4):
+                src = (l0, l1, l2, l3)[lane]
+                w = ws[src, j] if j < counts[src] else 0.0
+                sw[4 * r + lane] = w * w
+                sw[16 + 4 * r + lane] = cs[src, j] if w != 0.0 else 0.0
+        for i in range(lo, hi):
+            e = _u(4 * i)
+            a00, a01, a02, a03 = _lane_coefs(sw, 0, rl, e)
+            a10, a11, a12, a13 = _lane_coefs(sw, 1, rl, e + m4)
+            a20, a21, a22, a23 = _lane_coefs(sw, 2, rl, e + _u(2) * m4)
+            a30, a31, a32, a33 = _lane_coefs(sw, 3, rl, e + _u(3) * m4)
+            base = _u(4 * i * m)
+            for jj in range(_u(lo), _u(i + 1)):
+                f = base + _u(4) * jj
+                g = _u(4) * jj
+                q0 = ql[f]
+                q1 = ql[f + _u(1)]
+                q2 = ql[f + _u(2)]
+                q3 = ql[f + _u(3)]
+                q0, q1, q2, q3 = _lane_axpy(q0, q1, q2, q3, rl, g, a00, a01, a02, a03)
+                q0, q1, q2, q3 = _lane_axpy(
+                    q0, q1, q2, q3, rl, g + m4, a10, a11, a12, a13
+                )  # fmt: skip
+                q0, q1, q2, q3 = _lane_axpy(
+                    q0, q1, q2, q3, rl, g + _u(2) * m4, a20, a21, a22, a23
+                )  # fmt: skip
+                q0, q1, q2, q3 = _lane_axpy(
+                    q0, q1, q2, q3, rl, g + _u(3) * m4, a30, a31, a32, a33
+                )  # fmt: skip
+                ql[f] = q0
+                ql[f + _u(1)] = q1
+                ql[f + _u(2)] = q2
+                ql[f + _u(3)] = q3
+            v0 = qvl[e]
+            v1 = qvl[e + _u(1)]
+            v2 = qvl[e + _u(2)]
+            v3 = qvl[e + _u(3)]
+            v0, v1, v2, v3 = _lane_axpy(v0, v1, v2, v3, sw, _u(16), a00, a01, a02, a03)
+            v0, v1, v2, v3 = _lane_axpy(v0, v1, v2, v3, sw, _u(20), a10, a11, a12, a13)
+            v0, v1, v2, v3 = _lane_axpy(v0, v1, v2, v3, sw, _u(24), a20, a21, a22, a23)
+            v0, v1, v2, v3 = _lane_axpy(v0, v1, v2, v3, sw, _u(28), a30, a31, a32, a33)
+            qvl[e] = v0
+            qvl[e + _u(1)] = v1
+            qvl[e + _u(2)] = v2
+            qvl[e + _u(3)] = v3
+            if lo < fu[i]:
+                fu[i] = lo
+
+
+@njit
+@no_type_check
+def _lane_dark(ql, fu, dark, g_da, g_sh2, nl, m):
+    """The dark-channel prior of each pixel (`solve_pixels`' one-pixel code, weights
+    `g_da[l] · dark[c] / g_sh2[l]`) in the lane layout."""
+    lanes = _lane_index(nl)
+    for c in range(m - 1):
+        for lane in range(4):
+            src = lanes[lane]
+            wd2 = g_da[src] * dark[c] / g_sh2[src]
+            ql[4 * (c * m + c) + lane] += wd2
+            ql[4 * ((c + 1) * m + c + 1) + lane] += wd2
+            ql[4 * ((c + 1) * m + c) + lane] -= wd2
+        if c < fu[c + 1]:
+            fu[c + 1] = c
+
+
+@njit(slp=True)
+@no_type_check
+def _lane_priors(ql, fu, spec, spec_first, g_spec_w, nl, ridge_rel, spec_trace, m):
+    """:func:`_add_priors` of the four pixels (prior weights `g_spec_w`) in the lane
+    layout, the same operations per lane."""
+    l0, l1, l2, l3 = _lane_index(nl)
+    w0 = g_spec_w[l0]
+    w1 = g_spec_w[l1]
+    w2 = g_spec_w[l2]
+    w3 = g_spec_w[l3]
+    t0 = t1 = t2 = t3 = 0.0
+    for i in range(m):
+        e = _u(4 * (i * m + i))
+        t0 += ql[e]
+        t1 += ql[e + _u(1)]
+        t2 += ql[e + _u(2)]
+        t3 += ql[e + _u(3)]
+    d0 = ridge_rel * ((t0 + w0 * spec_trace) / m + 1e-30)
+    d1 = ridge_rel * ((t1 + w1 * spec_trace) / m + 1e-30)
+    d2 = ridge_rel * ((t2 + w2 * spec_trace) / m + 1e-30)
+    d3 = ridge_rel * ((t3 + w3 * spec_trace) / m + 1e-30)
+    for i in range(m):
+        si = spec[i]
+        base = _u(4 * i * m)
+        for j in range(_u(spec_first[i]), _u(i + 1)):
+            f = base + _u(4) * j
+            v = si[j]
+            ql[f] += w0 * v
+            ql[f + _u(1)] += w1 * v
+            ql[f + _u(2)] += w2 * v
+            ql[f + _u(3)] += w3 * v
+        e = _u(4 * (i * m + i))
+        ql[e] += d0
+        ql[e + _u(1)] += d1
+        ql[e + _u(2)] += d2
+        ql[e + _u(3)] += d3
+        if spec_first[i] < fu[i]:
+            fu[i] = spec_first[i]
+
+
+@njit(slp=True)
+@no_type_check
+def _solve_lanes(ql, qvl, fu, ptr, lf, inv, xl, fail, m):
+    """The unconstrained minimisers of the four systems `ql`, `qvl` (lane layout,
+    envelope `fu`) side by side: the envelope Cholesky's loops are short, and their
+    fixed cost is then paid once for four pixels. Lane l's answer is `xl[4 i + l]`,
+    `fail[l]` when its factorisation failed. `lf` (as `ql`), `inv`, `ptr` are work
+    space."""
+    for i in range(m):
+        ptr[i] = i * m + fu[i]
     for lane in range(4):
         fail[lane] = False
     _lane_factor(ql, ptr, fu, lf, inv, fail, m)
     _lane_solve(lf, ptr, fu, inv, qvl, xl, m)
+
+
+@njit(slp=True)
+@no_type_check
+def _lane_gradient(ql, qvl, fu, xl, gl, m):
+    """g = Q x + q of the four systems (lane layout, x and g as 4 i + l), as
+    :func:`_gradient`."""
+    for i in range(m):
+        e = _u(4 * (i * m + i))
+        c = _u(4 * i)
+        gl[c] = qvl[c] + ql[e] * xl[c]
+        gl[c + _u(1)] = qvl[c + _u(1)] + ql[e + _u(1)] * xl[c + _u(1)]
+        gl[c + _u(2)] = qvl[c + _u(2)] + ql[e + _u(2)] * xl[c + _u(2)]
+        gl[c + _u(3)] = qvl[c + _u(3)] + ql[e + _u(3)] * xl[c + _u(3)]
+    for i in range(m):
+        c = _u(4 * i)
+        x0 = xl[c]
+        x1 = xl[c + _u(1)]
+        x2 = xl[c + _u(2)]
+        x3 = xl[c + _u(3)]
+        g0 = g1 = g2 = g3 = 0.0
+        base = _u(4 * i * m)
+        for j in range(_u(fu[i]), _u(i)):
+            f = base + _u(4) * j
+            o = _u(4) * j
+            g0 += ql[f] * xl[o]
+            g1 += ql[f + _u(1)] * xl[o + _u(1)]
+            g2 += ql[f + _u(2)] * xl[o + _u(2)]
+            g3 += ql[f + _u(3)] * xl[o + _u(3)]
+            _lane_update(gl, o, ql, f, x0, x1, x2, x3)
+        gl[c] += g0
+        gl[c + _u(1)] += g1
+        gl[c + _u(2)] += g2
+        gl[c + _u(3)] += g3
+
+
+@njit(inline=True)
+@no_type_check
+def _lane_unpack(ql, qvl, fu, lane, qm, qv, first, m):
+    """Pixel `lane`'s Q (inside the envelope `fu`), q and envelope out of the lane
+    layout, for the one-pixel code."""
+    for i in range(m):
+        qv[i] = qvl[4 * i + lane]
+        first[i] = fu[i]
+        qi = qm[i]
+        for j in range(fu[i], i + 1):
+            qi[j] = ql[4 * (i * m + j) + lane]
 
 
 @njit
@@ -726,16 +979,51 @@ def _write_answer(r, steps, qm, first, qv, x, gr, out_x, out_kkt, out_steps):
 
 @njit(inline=True)
 @no_type_check
+def _write_lanes(r0, nl, steps, ql, qvl, fu, xs, xl, gl, out_x, out_kkt, out_steps):
+    """:func:`_write_answer` of the group's pixels `r0 + l`, their systems in the lane
+    layout (the gradients of the four side by side)."""
+    m = xs.shape[1]
+    lanes = _lane_index(nl)
+    for lane in range(4):
+        x = xs[lanes[lane]]
+        for i in range(m):
+            xl[4 * i + lane] = x[i]
+    _lane_gradient(ql, qvl, fu, xl, gl, m)
+    for lane in range(nl):
+        r = r0 + lane
+        if steps[lane] < 0:
+            for i in range(m):
+                out_x[r, i] = np.nan
+            out_kkt[r] = np.nan
+            out_steps[r] = -1
+            continue
+        qmax = 0.0
+        for i in range(m):
+            qmax = max(qmax, abs(ql[4 * (i * m + i) + lane]))
+        x = xs[lane]
+        kkt = 0.0
+        for i in range(m):
+            g = gl[4 * i + lane]
+            kkt = max(kkt, abs(x[i] - max(x[i] - g / qmax, 0.0)))
+            out_x[r, i] = x[i]
+        out_kkt[r] = kkt
+        out_steps[r] = steps[lane]
+
+
+@njit(inline=True)
+@no_type_check
 def _solve_group(
-    nl, todo, qms, qvs, firsts, xs, steps, ql, lfl, invl, qvl, xl, fu, ptr, fail,
+    nl, todo, qms, qvs, firsts, xs, steps, ql, qvl, fu, ptr, lfl, invl, xl, fail,
     free, lf, inv, p, gr, par, max_iters,
 ):  # fmt: skip
-    """The box QPs of the group's systems `qms[:nl]` marked in `todo`, answers into
-    `xs`, steps into `steps` (−1: a factorisation failed). One system: :func:`_box_qp`.
-    Four: their unconstrained minimisers side by side (:func:`_solve_lanes`), from
-    which each pixel's :func:`_box_qp` goes on (its active-set steps, if a channel is
-    negative); a pixel whose lane factorisation failed runs `_box_qp` from the start,
-    as the one-pixel path does."""
+    """The box QPs of the group's pixels marked in `todo`, answers into `xs`, steps
+    into `steps` (−1: a factorisation failed). One pixel (`qms`, `qvs`, `firsts`):
+    :func:`_box_qp`. Four (their systems in the lane layout `ql`, `qvl`, `fu`): their
+    unconstrained minimisers side by side (:func:`_solve_lanes`); a pixel whose
+    minimiser has a negative channel goes on from it with :func:`_box_qp`'s
+    active-set steps on its own system, taken out of the lane layout, and a pixel
+    whose lane factorisation failed runs `_box_qp` from the start, as the one-pixel
+    path does."""
     m = qvs.shape[1]
     tol = par[P_TOL]
     if qms.shape[0] == 1:
@@ -745,17 +1033,46 @@ def _solve_group(
                 max_iters, False,
             )  # fmt: skip
         return
-    _solve_lanes(qms, qvs, firsts, nl, ql, lfl, invl, qvl, xl, fu, ptr, fail)
+    _solve_lanes(ql, qvl, fu, ptr, lfl, invl, xl, fail, m)
     for lane in range(nl):
         if not todo[lane]:
             continue
         x = xs[lane]
+        neg = False
         for i in range(m):
-            x[i] = xl[4 * i + lane]
-        steps[lane] = _box_qp(
-            qms[lane], qvs[lane], firsts[lane], free, lf, inv, x, p, gr, tol,
-            max_iters, not fail[lane],
-        )  # fmt: skip
+            v = xl[4 * i + lane]
+            x[i] = v
+            if v < 0.0:
+                neg = True
+        if neg or fail[lane]:
+            _lane_unpack(ql, qvl, fu, lane, qms[lane], qvs[lane], firsts[lane], m)
+            steps[lane] = _box_qp(
+                qms[lane], qvs[lane], firsts[lane], free, lf, inv, x, p, gr, tol,
+                max_iters, not fail[lane],
+            )  # fmt: skip
+        else:  # what _box_qp does with a minimiser inside the box
+            for i in range(m):
+                if x[i] <= 0.0:
+                    x[i] = 0.0
+            steps[lane] = 0
+
+
+@njit(inline=True)
+@no_type_check
+def _lane_assemble(
+    restore, nl, ql, qvl, qdl, qvdl, fu, evrs, evlos, evhis, evcs, zzs, g_k, kmax,
+    rl, sw, spec, spec_first, g_spec_w, par,
+):  # fmt: skip
+    """:func:`_assemble` of the group's four pixels in the lane layout: Q, q ← (the
+    kept drift part, if `restore`) + each pixel's event rows weighted by its `zzs` +
+    the priors."""
+    m = spec.shape[0]
+    if restore:
+        _lane_copy(qdl, qvdl, ql, qvl, fu, m)
+    _lane_rows(evrs, evlos, evhis, evcs, zzs, g_k, nl, kmax, rl, sw, ql, qvl, fu, m)
+    _lane_priors(
+        ql, fu, spec, spec_first, g_spec_w, nl, par[P_RIDGE], par[P_SPEC_TRACE], m
+    )
 
 
 @njit
@@ -850,16 +1167,36 @@ def solve_pixels(
     nd = group if keep_drift else 1
     qds = np.zeros((nd, m, m))  # … and its drift part
     qvds = np.zeros((nd, m))
-    ql = np.zeros(LANES * (m * (m + 1) // 2) if group > 1 else 1)
-    lfl = np.zeros(ql.size)
+    # Four pixels: their systems in the lane layout (see _lane_index), the
+    # anti-drift rows kept per pixel and added side by side (_lane_rows).
+    lanes = group > 1
+    nsq = LANES * m * m if lanes else 1
+    ql = np.zeros(nsq)
+    qdl = np.zeros(nsq if keep_drift else 1)
+    lfl = np.zeros(nsq)
     invl = np.zeros(LANES * m)
     qvl = np.zeros(LANES * m)
+    qvdl = np.zeros(LANES * m)
     xl = np.zeros(LANES * m)
-    fu = np.zeros(m, np.int64)
+    gl = np.zeros(LANES * m)
+    rl = np.zeros(LANES * ROWS_PER_PASS * m)
+    sw = np.zeros(2 * LANES * ROWS_PER_PASS)
+    fu = np.arange(m)
     ptr = np.zeros(m, np.int64)
     fail = np.zeros(LANES, np.bool_)
+    n_ad = sweeps * g if lanes else 1
+    adrs = np.zeros((group, n_ad, m) if lanes else (1, 1, 1))
+    adlo = np.zeros((group, n_ad), np.int64)
+    adhi = np.zeros((group, n_ad), np.int64)
+    adc = np.zeros((group, n_ad))
+    ad_w = np.ones((group, n_ad))
+    ad_n = np.full(group, n_ad)
+    g_da = np.zeros(group)
+    g_sh2 = np.ones(group)
     for r0 in range(0, sel.size, group):
         nl = min(group, sel.size - r0)
+        if lanes:
+            _lane_clear(ql, qvl, qdl, qvdl, keep_drift, fu, m)
         for lane in range(nl):
             qm = qms[lane]
             qv = qvs[lane]
@@ -882,10 +1219,11 @@ def solve_pixels(
             phase = -d
             off = col_off[pix % width]
             t_on, t_off = thr_on[pix], thr_off[pix]
-            qm[:, :] = 0.0
-            qv[:] = 0.0
-            for i in range(m):
-                first[i] = i
+            if not lanes:
+                qm[:, :] = 0.0
+                qv[:] = 0.0
+                for i in range(m):
+                    first[i] = i
             lohi[0] = m
             lohi[1] = 0
             # Events: steps and sweeps (from the recorded times); with a photoreceptor
@@ -1018,14 +1356,32 @@ def solve_pixels(
                         c_row = -base * bump
                         i_tgt = max(wa * i_a + sgf * i_b, 1e-3 * base)
                     w_int = w_int0 / i_tgt if norm else w_int0
-                    _add_band(row, w_int, bg, fg, table, span_lo, span_hi, lohi)
-                    _add_band(row, -w_int * ca, ba, fa, table, span_lo, span_hi, lohi)
-                    _add_band(row, -w_int * cb, bb, fb, table, span_lo, span_hi, lohi)
-                    if lohi[1] > lohi[0]:
+                    rr = adrs[lane, s * g + j] if lanes else row
+                    _add_band(rr, w_int, bg, fg, table, span_lo, span_hi, lohi)
+                    _add_band(rr, -w_int * ca, ba, fa, table, span_lo, span_hi, lohi)
+                    _add_band(rr, -w_int * cb, bb, fb, table, span_lo, span_hi, lohi)
+                    if lanes:  # kept, added with the group's (_lane_rows)
+                        adlo[lane, s * g + j] = lohi[0]
+                        adhi[lane, s * g + j] = lohi[1]
+                        adc[lane, s * g + j] = w_int * c_row
+                        lohi[0] = m
+                        lohi[1] = 0
+                    elif lohi[1] > lohi[0]:
                         _accumulate(row, w_int * c_row, lohi, qm, qv, first)
                     else:
                         lohi[0] = m
                         lohi[1] = 0
+            for i in range(k):
+                zz[i] = 1.0
+            spec_w = par[P_ASPEC] / (s_hat * s_hat) if norm else par[P_ASPEC]
+            g_k[lane] = k
+            g_phase[lane] = phase
+            g_off[lane] = off
+            g_spec_w[lane] = spec_w
+            if lanes:  # the rest with the group's (below)
+                g_da[lane] = par[P_ADARK] * (share / max(k, 1))
+                g_sh2[lane] = s_hat * s_hat
+                continue
             # Dark channels tied to their neighbours, by the noise's share of the rows.
             if noisy_model and par[P_ADARK] > 0.0:
                 nshare = share / max(k, 1)
@@ -1042,22 +1398,32 @@ def solve_pixels(
                     qvd[i] = qv[i]
                     for j in range(first[i], i + 1):
                         qd[i, j] = qm[i, j]
-            for i in range(k):
-                zz[i] = 1.0
-            spec_w = par[P_ASPEC] / (s_hat * s_hat) if norm else par[P_ASPEC]
-            g_k[lane] = k
-            g_phase[lane] = phase
-            g_off[lane] = off
-            g_spec_w[lane] = spec_w
             _assemble(
                 False, qm, qv, qd, qvd, first, evr, evc, evlo, evhi, zz, k, spec,
                 spec_first, spec_w, par,
+            )  # fmt: skip
+        if lanes:  # the group's systems, side by side, as the one-pixel code's
+            _lane_rows(
+                adrs, adlo, adhi, adc, ad_w, ad_n, nl, n_ad, rl, sw, ql, qvl, fu, m
+            )  # fmt: skip
+            for lane in range(nl):
+                for j in range(n_ad):
+                    ar = adrs[lane, j]
+                    for c in range(adlo[lane, j], adhi[lane, j]):
+                        ar[c] = 0.0
+            if noisy_model and par[P_ADARK] > 0.0:
+                _lane_dark(ql, fu, dark, g_da, g_sh2, nl, m)
+            if keep_drift:
+                _lane_copy(ql, qvl, qdl, qvdl, fu, m)
+            _lane_assemble(
+                False, nl, ql, qvl, qdl, qvdl, fu, evrs, evlos, evhis, evcs, zzs, g_k,
+                max(g_k[:nl].max(), 0), rl, sw, spec, spec_first, g_spec_w, par,
             )  # fmt: skip
         # The group's pixels solved together; then each pixel's further passes.
         for lane in range(group):
             todo[lane] = lane < nl
         _solve_group(
-            nl, todo, qms, qvs, firsts, xs, g_steps, ql, lfl, invl, qvl, xl, fu, ptr,
+            nl, todo, qms, qvs, firsts, xs, g_steps, ql, qvl, fu, ptr, lfl, invl, xl,
             fail, free, lf, inv, p, gr, par, max_iters,
         )  # fmt: skip
         # The photoreceptor model linearised at the answer replaces the delay-shifted
@@ -1077,14 +1443,20 @@ def solve_pixels(
                 zz = zzs[lane]
                 for i in range(k):
                     zz[i] = 1.0
-                _assemble(
-                    True, qms[lane], qvs[lane], qds[lane], qvds[lane], firsts[lane],
-                    evrs[lane], evcs[lane], evlos[lane], evhis[lane], zz, k, spec,
-                    spec_first, g_spec_w[lane], par,
+                if not lanes:
+                    _assemble(
+                        True, qms[lane], qvs[lane], qds[lane], qvds[lane], firsts[lane],
+                        evrs[lane], evcs[lane], evlos[lane], evhis[lane], zz, k, spec,
+                        spec_first, g_spec_w[lane], par,
+                    )  # fmt: skip
+            if lanes:
+                _lane_assemble(
+                    True, nl, ql, qvl, qdl, qvdl, fu, evrs, evlos, evhis, evcs, zzs,
+                    g_k, max(g_k[:nl].max(), 0), rl, sw, spec, spec_first, g_spec_w, par,
                 )  # fmt: skip
             _solve_group(
-                nl, todo, qms, qvs, firsts, xs, g_steps, ql, lfl, invl, qvl, xl, fu, ptr,
-                fail, free, lf, inv, p, gr, par, max_iters,
+                nl, todo, qms, qvs, firsts, xs, g_steps, ql, qvl, fu, ptr, lfl, invl,
+                xl, fail, free, lf, inv, p, gr, par, max_iters,
             )  # fmt: skip
         # Robust reweighting: rows far outside their noise count linearly (Huber)
         # or not at all; a pixel stops when none is far out.
@@ -1114,31 +1486,45 @@ def solve_pixels(
                 scale = max(1.4826 * med, 1.0)
                 any_big = False
                 for i in range(k):
+                    if absz[i] / scale > par[P_RC]:
+                        any_big = True
+                if not any_big:  # (its weights stay those its answer was solved with)
+                    todo[lane] = False
+                    continue
+                for i in range(k):
                     a = absz[i] / scale
                     u = 1.0
                     if a > par[P_RC]:
-                        any_big = True
                         u = math.sqrt(par[P_RC] / a)
                     if a > par[P_REJECT]:
                         u = 0.0
                     zz[i] = u  # the rows' weights
-                if not any_big:
-                    todo[lane] = False
-                    continue
                 more = True
-                _assemble(
-                    True, qms[lane], qvs[lane], qds[lane], qvds[lane], firsts[lane], evr,
-                    evc, evlo, evhi, zz, k, spec, spec_first, g_spec_w[lane], par,
-                )  # fmt: skip
+                if not lanes:
+                    _assemble(
+                        True, qms[lane], qvs[lane], qds[lane], qvds[lane], firsts[lane],
+                        evr, evc, evlo, evhi, zz, k, spec, spec_first, g_spec_w[lane],
+                        par,
+                    )  # fmt: skip
             if not more:
                 break
+            if lanes:
+                _lane_assemble(
+                    True, nl, ql, qvl, qdl, qvdl, fu, evrs, evlos, evhis, evcs, zzs,
+                    g_k, max(g_k[:nl].max(), 0), rl, sw, spec, spec_first, g_spec_w, par,
+                )  # fmt: skip
             _solve_group(
-                nl, todo, qms, qvs, firsts, xs, g_steps, ql, lfl, invl, qvl, xl, fu, ptr,
-                fail, free, lf, inv, p, gr, par, max_iters,
+                nl, todo, qms, qvs, firsts, xs, g_steps, ql, qvl, fu, ptr, lfl, invl,
+                xl, fail, free, lf, inv, p, gr, par, max_iters,
+            )  # fmt: skip
+        if lanes:
+            _write_lanes(
+                r0, nl, g_steps, ql, qvl, fu, xs, xl, gl, out_x, out_kkt, out_steps
             )  # fmt: skip
         for lane in range(nl):
             _clear_events(evrs[lane], evlos[lane], evhis[lane], g_k[lane])  # next pixel
-            _write_answer(
-                r0 + lane, g_steps[lane], qms[lane], firsts[lane], qvs[lane], xs[lane],
-                gr, out_x, out_kkt, out_steps,
-            )  # fmt: skip
+            if not lanes:
+                _write_answer(
+                    r0 + lane, g_steps[lane], qms[lane], firsts[lane], qvs[lane],
+                    xs[lane], gr, out_x, out_kkt, out_steps,
+                )  # fmt: skip

@@ -155,9 +155,10 @@ def test_lanes_equal_one_pixel_at_a_time_noise_aware():
 
 
 def test_lane_solver_flags_a_failed_lane():
-    """`_solve_lanes` on three systems with different envelopes (the fourth lane
-    repeats the third): each lane's answer is its own system's solution, and only
-    the lane whose matrix is not positive definite is marked failed."""
+    """`_solve_lanes` on three systems with different envelopes, in the lane layout
+    over their union envelope (the fourth lane repeats the third): each lane's answer
+    is its own system's solution, and only the lane whose matrix is not positive
+    definite is marked failed."""
     from evhsi_jax._reconstruct import _fused_jit as jit
 
     m, rng = 12, np.random.default_rng(3)
@@ -173,11 +174,16 @@ def test_lane_solver_flags_a_failed_lane():
         if lane == 1:
             full[4, 4] = -1.0
         qms[lane] = np.tril(full)
-        firsts[lane] = [np.flatnonzero(np.abs(full[i, : i + 1]) > 0)[0] for i in range(m)]
-    ql = np.zeros(4 * m * (m + 1) // 2)
-    lf, inv, qvl, xl = np.zeros(ql.size), np.zeros(4 * m), np.zeros(4 * m), np.zeros(4 * m)
-    fu, ptr, fail = np.zeros(m, np.int64), np.zeros(m, np.int64), np.zeros(4, bool)
-    jit._solve_lanes(qms, qvs, firsts, 3, ql, lf, inv, qvl, xl, fu, ptr, fail)
+        firsts[lane] = [
+            np.flatnonzero(np.abs(full[i, : i + 1]) > 0)[0] for i in range(m)
+        ]
+    lanes = [0, 1, 2, 2]  # the lane layout: lane l of (i, j) at 4 (i m + j) + l
+    ql = np.ascontiguousarray(qms[lanes].transpose(1, 2, 0)).ravel()
+    qvl = np.ascontiguousarray(qvs[lanes].T).ravel()
+    fu = firsts[:3].min(axis=0)
+    lf, inv, xl = np.zeros(ql.size), np.zeros(4 * m), np.zeros(4 * m)
+    ptr, fail = np.zeros(m, np.int64), np.zeros(4, bool)
+    jit._solve_lanes(ql, qvl, fu, ptr, lf, inv, xl, fail, m)
     assert list(fail) == [False, True, False, False]
     for lane in (0, 2):
         full = qms[lane] + np.tril(qms[lane], -1).T
