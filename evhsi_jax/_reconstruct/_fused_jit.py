@@ -386,8 +386,11 @@ def _lane_pivot(d, fail, lane):
 def _lane_factor(ql, ptr, fu, lf, inv, fail, m):
     """:func:`_factor` of four systems at once, all free, in the lane layout of
     :func:`_solve_lanes`: lane l of entry (i, j) at `4 (ptr[i] - fu[i] + j) + l`.
-    The same operations in the same order per lane as `_factor` (the union envelope
-    only adds products with exact zeros); a lane whose pivot is not positive is
+    Per lane the operations of `_factor` (the union envelope only adds products with
+    exact zeros), but each dot product in two partial sums (even and odd k): as one
+    chain of dependent subtractions it was latency-bound (development check: 5 % of
+    the kernel's time; four sums, or two rows of L at a time, gained nothing more).
+    So the last bits differ from `_factor`'s. A lane whose pivot is not positive is
     marked in `fail` and carried on with pivot 1."""
     for i in range(m):
         fi = fu[i]
@@ -404,13 +407,32 @@ def _lane_factor(ql, ptr, fu, lf, inv, fail, m):
             s1 = ql[e + _u(1)]
             s2 = ql[e + _u(2)]
             s3 = ql[e + _u(3)]
-            for k in range(_u(max(fi, fu[j])), _u(j)):
+            k0 = max(fi, fu[j])
+            n2 = (j - k0) // 2
+            t0 = t1 = t2 = t3 = 0.0
+            for q in range(_u(n2)):
+                k = _u(k0) + _u(2) * q
                 a = _u(4) * (_u(pi) + k)
                 b = _u(4) * (_u(pj) + k)
                 s0 -= lf[a] * lf[b]
                 s1 -= lf[a + _u(1)] * lf[b + _u(1)]
                 s2 -= lf[a + _u(2)] * lf[b + _u(2)]
                 s3 -= lf[a + _u(3)] * lf[b + _u(3)]
+                t0 -= lf[a + _u(4)] * lf[b + _u(4)]
+                t1 -= lf[a + _u(5)] * lf[b + _u(5)]
+                t2 -= lf[a + _u(6)] * lf[b + _u(6)]
+                t3 -= lf[a + _u(7)] * lf[b + _u(7)]
+            if k0 + 2 * n2 < j:
+                a = _u(4 * (pi + j - 1))
+                b = _u(4 * (pj + j - 1))
+                s0 -= lf[a] * lf[b]
+                s1 -= lf[a + _u(1)] * lf[b + _u(1)]
+                s2 -= lf[a + _u(2)] * lf[b + _u(2)]
+                s3 -= lf[a + _u(3)] * lf[b + _u(3)]
+            s0 += t0
+            s1 += t1
+            s2 += t2
+            s3 += t3
             c = _u(4 * j)
             v0 = s0 * inv[c]
             v1 = s1 * inv[c + _u(1)]
