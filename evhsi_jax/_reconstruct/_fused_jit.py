@@ -6,19 +6,26 @@ model, including the photoreceptor pass and the robust reweighting of
 :func:`._pipeline._solve_chunk`) and :func:`._solvers.active_set_batch`, without any
 M×M matrix leaving the cache.
 
-Pixels go in groups of four: each is assembled on its own, then the four systems are
-factorised and solved side by side, one per lane of a float64 × 4 vector register
-(`_solve_lanes`): the envelope Cholesky's loops are short, and their fixed cost is
-then paid once for four pixels. With the noise model each pixel of the group keeps its
-event rows and drift part, and the group is solved together again after each
-photoreceptor pass and reweighting (a pixel whose reweighting has converged sits out).
+Pixels go in groups of four (`lanes=4`, the default), one per lane of a float64 × 4
+vector register: each pixel's rows are formed on its own (band lookups, weights), then
+the four pixels' Q are accumulated side by side in the *lane layout* (`_lane_rows`,
+four rows per pass over Q), their priors added, and the four systems factorised and
+solved together (`_solve_lanes`). The loops of both are short (a row's span, an
+envelope row: ~20 entries), and their fixed cost — loop set-up, mispredicted exits —
+is then paid once for four pixels. A pixel whose minimiser has a negative channel is
+taken out of the lane layout for its active-set steps. With the noise model each pixel
+of the group keeps its event rows and drift part, and the group is assembled and
+solved together again after each photoreceptor pass and reweighting (a pixel whose
+reweighting has converged sits out, its system rebuilt unchanged). `lanes=1` keeps the
+one-pixel path (`_accumulate`, `_assemble`, `_write_answer`), the reference the tests
+compare the lanes with.
 
 Imported on first use (numba). Marked `no_type_check` so the jaxtyping import hook of
 the test suite leaves it to numba. The per-row helpers are inlined; `_assemble`
-(called up to three times per pixel), `_box_qp`, `_solve_lanes` and `_lowpass_rows` are
-compiled as functions of their own: inlining them too was no faster on two threads in a
-development check and doubled the first compilation (~55 s against ~27 s, once per
-install: numba caches it).
+(called up to three times per pixel), `_box_qp`, `_lowpass_rows` and the lane
+functions are compiled as functions of their own: inlining them too was no faster on
+two threads in a development check and doubled the first compilation (~55 s against
+~27 s, once per install: numba caches it).
 """
 
 from __future__ import annotations

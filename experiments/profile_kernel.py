@@ -1,0 +1,173 @@
+"""Where the fused CPU kernel spends its time, per compiled function (Linux `perf`).
+
+Switching stages of the kernel off one at a time also changes what is left (a missing
+row narrows Q's envelope, so the factorisation gets cheaper too); a sampling profile
+does not. numba's machine code has no symbols `perf` can see, so the script writes a
+perf map (`/tmp/perf-<pid>.map`: start, size and name of each function of the kernel's
+compiled module, from numba's code library), which `perf report` reads.
+
+Setup: one sweep of the ColorChecker at `--size` (default 96×144), paper rig with the
+`--sensor` preset (as `bench_kernel_ab.py`), the true rig as the calibration; the
+kernel compiled afresh into a temporary numba cache (the compiled module must be built
+in this process for its function addresses), one warm-up call, then `--repeats` calls
+on one thread under `perf record -e cpu-clock`. Printed and written: each kernel
+function's share of the kernel's samples (functions inlined by numba or LLVM count as
+their caller), µs per pixel of the profiled calls, the float32 matmul GFLOP/s.
+
+    python experiments/profile_kernel.py [--sensor ideal|noise|realistic]
+        [--size 96x144] [--repeats 8] [--out PATH]
+
+Needs `perf` (Debian: linux-perf) and permission to sample the process
+(`kernel.perf_event_paranoid` ≤ 2); exits with status 2 and a one-line reason
+otherwise.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+
+def _short(mangled: str) -> str:
+    """The function's own name out of numba's Itanium-mangled symbol."""
+    m = re.match(r"_ZN(.*)", mangled)
+    if not m:
+        return mangled
+    rest, parts = m.group(1), []
+    while True:
+        d = re.match(r"(\d+)", rest)
+        if not d:
+            break
+        n = int(d.group(1))
+        start = len(d.group(1))
+        parts.append(rest[start : start + n])
+        rest = rest[start + n :]
+    return parts[-1] if parts else mangled
+
+
+def child(args):
+    import jax.random as jr
+    import numpy as np
+
+    import evhsi_jax as ev
+    from evhsi_jax._reconstruct import _fused
+    from evhsi_jax._reconstruct import _pipeline as pipe
+    from evhsi_jax._reconstruct._pixels import pixel_lists
+    from evhsi_jax._reconstruct._problem import ProblemConfig
+
+    h, w = ev.forward.parse_size(args.size)
+    if args.sensor == "noise":
+        rig = ev.Rig(threshold_noise=0.01, timestamp_jitter_us=5.0)
+    else:
+        rig = ev.Rig(sensor=args.sensor)
+    scene = ev.load_scene("colorchecker", (h, w))
+    events, info = ev.simulate(scene, rig, sweeps=1, key=jr.key(0), return_info=True)
+    t0 = int(events.trigger_t_us[0]) if events.trigger_t_us.size else 0
+    noise = pipe.noise_model(rig)
+    kept, _, _ = pipe.screen_events(events, rig, t0, noise, 1, None)
+    counts, starts, t_rel, sgn = pixel_lists(kept, t0)
+    sel = np.flatnonzero(counts)
+    prob = _fused.FusedProblem(
+        rig, pipe.channel_table(rig), ProblemConfig(), pipe.solver_spec("auto"), w,
+        np.asarray(rig.column_offsets(w), np.float64), 1, noise,
+    )  # fmt: skip
+    lead = np.zeros(h * w)
+    on = np.asarray(info.threshold_on, np.float64).ravel()
+    off = np.asarray(info.threshold_off, np.float64).ravel()
+
+    def solve():
+        return _fused.solve_fused(
+            prob, sel, starts, counts, t_rel, sgn, lead, on, off, threads=1
+        )
+
+    solve()  # compiles into the (empty) temporary cache
+    from evhsi_jax._reconstruct import _fused_jit as jit
+
+    disp = jit.solve_pixels
+    lib = disp.overloads[disp.signatures[0]].library
+    names = set(re.findall(r'^define [^@]*@"?([^"( ]+)"?\(', lib.get_llvm_str(), re.M))
+    starts_ = sorted(
+        (lib.get_pointer_to_function(n), n) for n in names
+        if lib.get_pointer_to_function(n)
+    )  # fmt: skip
+    with open(f"/tmp/perf-{os.getpid()}.map", "w") as f:
+        for (a, n), (b, _) in zip(starts_, starts_[1:] + [(starts_[-1][0] + 4096, "")]):
+            f.write(f"{a:x} {b - a:x} evhsi_kernel:{_short(n)}\n")
+    t = time.perf_counter()
+    for _ in range(args.repeats):
+        solve()
+    us = 1e6 * (time.perf_counter() - t) / args.repeats / sel.size
+    Path(args.child).write_text(
+        json.dumps({"us_per_px": us, "pixels": int(sel.size), "pid": os.getpid()})
+    )
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument(
+        "--sensor", default="ideal", choices=["ideal", "noise", "realistic"]
+    )
+    ap.add_argument("--size", default="96x144")
+    ap.add_argument("--repeats", type=int, default=8)
+    ap.add_argument("--out", default=None)
+    ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.child:
+        return child(args)
+    perf = shutil.which("perf")
+    if perf is None:
+        print("profile_kernel: `perf` not found (Debian: apt install linux-perf)")
+        sys.exit(2)
+    with tempfile.TemporaryDirectory() as tmp:
+        data, res = Path(tmp) / "perf.data", Path(tmp) / "child.json"
+        env = dict(os.environ, NUMBA_CACHE_DIR=str(Path(tmp) / "numba"))
+        cmd = [perf, "record", "-q", "-e", "cpu-clock", "-F", "2000", "-o", str(data),
+               "--", sys.executable, __file__, "--sensor", args.sensor, "--size",
+               args.size, "--repeats", str(args.repeats), "--child", str(res)]  # fmt: skip
+        run = subprocess.run(cmd, env=env, capture_output=True, text=True)
+        if run.returncode != 0 or not res.exists():
+            tail = (run.stderr.strip().splitlines() or ["no output"])[-1]
+            print(f"profile_kernel: perf record failed: {tail}")
+            sys.exit(2)
+        rep = subprocess.run(
+            [perf, "report", "-i", str(data), "--stdio", "--sort", "sym"],
+            capture_output=True, text=True,
+        ).stdout  # fmt: skip
+        child_res = json.loads(res.read_text())
+        Path(f"/tmp/perf-{child_res['pid']}.map").unlink(missing_ok=True)
+    shares = {}
+    for line in rep.splitlines():
+        m = re.match(r"\s*([\d.]+)%\s+\[\.\]\s+evhsi_kernel:(\S+)", line)
+        if m:
+            shares[m.group(2)] = shares.get(m.group(2), 0.0) + float(m.group(1))
+    total = sum(shares.values())
+    if total == 0:
+        print("profile_kernel: no samples in the kernel (perf map not read?)")
+        sys.exit(2)
+    from _common import matmul_gflops
+
+    gflops = matmul_gflops()
+    rows = {k: v / total for k, v in sorted(shares.items(), key=lambda kv: -kv[1])}
+    print(f"{args.sensor}, {args.size}, one thread: {child_res['us_per_px']:.1f} µs/px "
+          f"over {args.repeats} calls; float32 matmul {gflops:.1f} GFLOP/s")  # fmt: skip
+    for k, v in rows.items():
+        if v >= 0.005:
+            print(f"  {100 * v:5.1f} %  {k}")
+    if args.out:
+        Path(args.out).write_text(json.dumps({
+            "sensor": args.sensor, "size": args.size, "repeats": args.repeats,
+            "us_per_px": child_res["us_per_px"], "pixels": child_res["pixels"],
+            "share_of_kernel_samples": rows, "matmul_gflops": gflops,
+        }, indent=2))  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
