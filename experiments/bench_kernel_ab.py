@@ -36,15 +36,11 @@ import tempfile
 import time
 from pathlib import Path
 
-import jax.random as jr
 import numpy as np
 from _common import matmul_gflops
+from _kernel_setup import fused_inputs
 
-import evhsi_jax as ev
 from evhsi_jax._reconstruct import _fused
-from evhsi_jax._reconstruct import _pipeline as pipe
-from evhsi_jax._reconstruct._pixels import pixel_lists
-from evhsi_jax._reconstruct._problem import ProblemConfig
 
 KERNEL = "evhsi_jax/_reconstruct/_fused_jit.py"
 
@@ -81,26 +77,8 @@ def main():
     ).stdout  # fmt: skip
     new_src = (root / KERNEL).read_text()
 
-    h, w = ev.forward.parse_size(args.size)
-    if args.sensor == "noise":  # threshold noise and jitter: weights, reweighting
-        rig = ev.Rig(threshold_noise=0.01, timestamp_jitter_us=5.0)
-    else:
-        rig = ev.Rig(sensor=args.sensor)
-    scene = ev.load_scene("colorchecker", (h, w))
-    events, info = ev.simulate(scene, rig, sweeps=1, key=jr.key(0), return_info=True)
-    t0 = int(events.trigger_t_us[0]) if events.trigger_t_us.size else 0
-    noise = pipe.noise_model(rig)
-    kept, _, _ = pipe.screen_events(events, rig, t0, noise, 1, None)
-    counts, starts, t_rel, sgn = pixel_lists(kept, t0)
-    sel = np.flatnonzero(counts)
-    offs = np.asarray(rig.column_offsets(w), np.float64)
-    prob = _fused.FusedProblem(
-        rig, pipe.channel_table(rig), ProblemConfig(), pipe.solver_spec("auto"), w,
-        offs, 1, noise,
-    )  # fmt: skip
-    lead = np.zeros(h * w)
-    thr_on = np.asarray(info.threshold_on, np.float64).ravel()
-    thr_off = np.asarray(info.threshold_off, np.float64).ravel()
+    setup = fused_inputs(args.sensor, args.size)
+    prob, sel, (h, w) = setup.prob, setup.sel, setup.size
 
     with tempfile.TemporaryDirectory() as tmp:
         sys.path.insert(0, tmp)
@@ -118,9 +96,8 @@ def main():
             try:
                 t = time.perf_counter()
                 x, _, steps = _fused.solve_fused(
-                    prob, sel, starts, counts, t_rel, sgn, lead, thr_on, thr_off,
-                    threads=args.threads,
-                )  # fmt: skip
+                    prob, sel, *setup.args, threads=args.threads
+                )
                 return time.perf_counter() - t, x, steps
             finally:
                 sys.modules["evhsi_jax._reconstruct._fused_jit"] = _fused_jit

@@ -54,39 +54,15 @@ def _short(mangled: str) -> str:
 
 
 def child(args):
-    import jax.random as jr
-    import numpy as np
+    from _kernel_setup import fused_inputs
 
-    import evhsi_jax as ev
     from evhsi_jax._reconstruct import _fused
-    from evhsi_jax._reconstruct import _pipeline as pipe
-    from evhsi_jax._reconstruct._pixels import pixel_lists
-    from evhsi_jax._reconstruct._problem import ProblemConfig
 
-    h, w = ev.forward.parse_size(args.size)
-    if args.sensor == "noise":
-        rig = ev.Rig(threshold_noise=0.01, timestamp_jitter_us=5.0)
-    else:
-        rig = ev.Rig(sensor=args.sensor)
-    scene = ev.load_scene("colorchecker", (h, w))
-    events, info = ev.simulate(scene, rig, sweeps=1, key=jr.key(0), return_info=True)
-    t0 = int(events.trigger_t_us[0]) if events.trigger_t_us.size else 0
-    noise = pipe.noise_model(rig)
-    kept, _, _ = pipe.screen_events(events, rig, t0, noise, 1, None)
-    counts, starts, t_rel, sgn = pixel_lists(kept, t0)
-    sel = np.flatnonzero(counts)
-    prob = _fused.FusedProblem(
-        rig, pipe.channel_table(rig), ProblemConfig(), pipe.solver_spec("auto"), w,
-        np.asarray(rig.column_offsets(w), np.float64), 1, noise,
-    )  # fmt: skip
-    lead = np.zeros(h * w)
-    on = np.asarray(info.threshold_on, np.float64).ravel()
-    off = np.asarray(info.threshold_off, np.float64).ravel()
+    setup = fused_inputs(args.sensor, args.size)
+    sel = setup.sel
 
     def solve():
-        return _fused.solve_fused(
-            prob, sel, starts, counts, t_rel, sgn, lead, on, off, threads=1
-        )
+        return _fused.solve_fused(setup.prob, sel, *setup.args, threads=1)
 
     solve()  # compiles into the (empty) temporary cache
     from evhsi_jax._reconstruct import _fused_jit as jit

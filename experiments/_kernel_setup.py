@@ -1,0 +1,47 @@
+"""The fused kernel's inputs for a kernel-level study (`bench_kernel_ab.py`,
+`profile_kernel.py`): uses the package's private modules, unlike `_common.py`."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import jax.random as jr
+import numpy as np
+
+import evhsi_jax as ev
+from evhsi_jax._reconstruct import _fused
+from evhsi_jax._reconstruct import _pipeline as pipe
+from evhsi_jax._reconstruct._pixels import pixel_lists
+from evhsi_jax._reconstruct._problem import ProblemConfig
+
+
+def fused_inputs(sensor: str, size: str) -> SimpleNamespace:
+    """One sweep of the ColorChecker at `size`, paper rig with the `sensor` preset
+    (`noise`: threshold noise 0.01 and 5 µs jitter only), the true rig as the
+    calibration and the true per-pixel thresholds; the events screened and listed per
+    pixel. Returns `prob`, `sel` and `args` (the arguments of
+    `_fused.solve_fused` after them)."""
+    h, w = ev.forward.parse_size(size)
+    if sensor == "noise":  # threshold noise and jitter: weights, reweighting
+        rig = ev.Rig(threshold_noise=0.01, timestamp_jitter_us=5.0)
+    else:
+        rig = ev.Rig(sensor=sensor)
+    scene = ev.load_scene("colorchecker", (h, w))
+    events, info = ev.simulate(scene, rig, sweeps=1, key=jr.key(0), return_info=True)
+    t0 = int(events.trigger_t_us[0]) if events.trigger_t_us.size else 0
+    noise = pipe.noise_model(rig)
+    kept, _, _ = pipe.screen_events(events, rig, t0, noise, 1, None)
+    counts, starts, t_rel, sgn = pixel_lists(kept, t0)
+    offs = np.asarray(rig.column_offsets(w), np.float64)
+    prob = _fused.FusedProblem(
+        rig, pipe.channel_table(rig), ProblemConfig(), pipe.solver_spec("auto"), w,
+        offs, 1, noise,
+    )  # fmt: skip
+    args = (
+        starts, counts, t_rel, sgn, np.zeros(h * w),
+        np.asarray(info.threshold_on, np.float64).ravel(),
+        np.asarray(info.threshold_off, np.float64).ravel(),
+    )  # fmt: skip
+    return SimpleNamespace(
+        prob=prob, sel=np.flatnonzero(counts), args=args, size=(h, w)
+    )
