@@ -86,22 +86,31 @@ def _band_local(local, off, par, ntab):
 
 @njit(inline=True)
 @no_type_check
-def _add_band(row, coef, i0, frac, table, span_lo, span_hi, lohi):
-    """row += coef · A(λc) over the band's span; widens `lohi` to cover it."""
-    if i0 < 0 or coef == 0.0:
-        return
-    lo = min(span_lo[i0], span_lo[i0 + 1])
-    hi = max(span_hi[i0], span_hi[i0 + 1])
-    if lo >= hi:
-        return
-    c0 = coef * (1.0 - frac)
-    c1 = coef * frac
-    t0 = table[i0]
-    t1 = table[i0 + 1]
-    for m in range(_u(lo), _u(hi)):
-        row[m] += c0 * t0[m] + c1 * t1[m]
-    lohi[0] = min(lohi[0], lo)
-    lohi[1] = max(lohi[1], hi)
+def _add_bands(row, segs, table, span_lo, span_hi, lohi):
+    """row += coef · A(λc) for each segment (table row i0, fraction, coef) of `segs`,
+    over the band's span (rows outside the table or with coef 0 add nothing); widens
+    `lohi` to cover them. One call per row, not per segment: each call of an inlined
+    helper costs numba an atomic reference count increment and decrement per array
+    argument (a sampling profile put ~15 % of the kernel's time in them when each
+    segment was a call of its own)."""
+    for seg in segs:
+        i0 = seg[0]
+        frac = seg[1]
+        coef = seg[2]
+        if i0 < 0 or coef == 0.0:
+            continue
+        lo = min(span_lo[i0], span_lo[i0 + 1])
+        hi = max(span_hi[i0], span_hi[i0 + 1])
+        if lo >= hi:
+            continue
+        c0 = coef * (1.0 - frac)
+        c1 = coef * frac
+        t0 = _u(i0)
+        t1 = _u(i0 + 1)
+        for m in range(_u(lo), _u(hi)):
+            row[m] += c0 * table[t0, m] + c1 * table[t1, m]
+        lohi[0] = min(lohi[0], lo)
+        lohi[1] = max(lohi[1], hi)
 
 
 @njit(inline=True)
@@ -1321,8 +1330,8 @@ def solve_pixels(
                 ri = evr[i]
                 lohi[0] = m
                 lohi[1] = 0
-                _add_band(ri, w, b0, f0, table, span_lo, span_hi, lohi)
-                _add_band(ri, -w * ratio, b1, f1, table, span_lo, span_hi, lohi)
+                segs = ((b0, f0, w), (b1, f1, -w * ratio))
+                _add_bands(ri, segs, table, span_lo, span_hi, lohi)
                 evc[i] = w * base * (1.0 - ratio)
                 evlo[i] = min(lohi[0], lohi[1])
                 evhi[i] = lohi[1]
@@ -1386,9 +1395,8 @@ def solve_pixels(
                         i_tgt = max(wa * i_a + sgf * i_b, 1e-3 * base)
                     w_int = w_int0 / i_tgt if norm else w_int0
                     rr = adrs[lane, s * g + j] if lanes else row
-                    _add_band(rr, w_int, bg, fg, table, span_lo, span_hi, lohi)
-                    _add_band(rr, -w_int * ca, ba, fa, table, span_lo, span_hi, lohi)
-                    _add_band(rr, -w_int * cb, bb, fb, table, span_lo, span_hi, lohi)
+                    segs = ((bg, fg, w_int), (ba, fa, -w_int * ca), (bb, fb, -w_int * cb))
+                    _add_bands(rr, segs, table, span_lo, span_hi, lohi)
                     if lanes:  # kept, added with the group's (_lane_rows)
                         adlo[lane, s * g + j] = lohi[0]
                         adhi[lane, s * g + j] = lohi[1]
