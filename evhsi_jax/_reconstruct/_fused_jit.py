@@ -1098,8 +1098,8 @@ def _solve_group(
 @njit(inline=True)
 @no_type_check
 def _lane_assemble(
-    restore, nl, ql, qvl, qdl, qvdl, fu, evrs, evlos, evhis, evcs, zzs, g_k, kmax,
-    rl, sw, spec, spec_first, g_spec_w, par,
+    restore, nl, ql, qvl, qdl, qvdl, fu, evrs, evlos, evhis, evcs, zzs, g_k, rl, sw,
+    spec, spec_first, g_spec_w, par,
 ):  # fmt: skip
     """:func:`_assemble` of the group's four pixels in the lane layout: Q, q ← (the
     kept drift part, if `restore`) + each pixel's event rows weighted by its `zzs` +
@@ -1107,7 +1107,8 @@ def _lane_assemble(
     m = spec.shape[0]
     if restore:
         _lane_copy(qdl, qvdl, ql, qvl, fu, m)
-    _lane_rows(evrs, evlos, evhis, evcs, zzs, g_k, nl, kmax, rl, sw, ql, qvl, fu, m)
+    nrows = max(g_k[:nl].max(), 0)  # the most event rows of the group's pixels
+    _lane_rows(evrs, evlos, evhis, evcs, zzs, g_k, nl, nrows, rl, sw, ql, qvl, fu, m)
     _lane_priors(
         ql, fu, spec, spec_first, g_spec_w, nl, par[P_RIDGE], par[P_SPEC_TRACE], m
     )
@@ -1454,7 +1455,7 @@ def solve_pixels(
                 _lane_copy(ql, qvl, qdl, qvdl, fu, m)
             _lane_assemble(
                 False, nl, ql, qvl, qdl, qvdl, fu, evrs, evlos, evhis, evcs, zzs, g_k,
-                max(g_k[:nl].max(), 0), rl, sw, spec, spec_first, g_spec_w, par,
+                rl, sw, spec, spec_first, g_spec_w, par,
             )  # fmt: skip
         # The group's pixels solved together; then each pixel's further passes.
         for lane in range(group):
@@ -1489,7 +1490,7 @@ def solve_pixels(
             if lanes:
                 _lane_assemble(
                     True, nl, ql, qvl, qdl, qvdl, fu, evrs, evlos, evhis, evcs, zzs,
-                    g_k, max(g_k[:nl].max(), 0), rl, sw, spec, spec_first, g_spec_w, par,
+                    g_k, rl, sw, spec, spec_first, g_spec_w, par,
                 )  # fmt: skip
             _solve_group(
                 nl, todo, qms, qvs, firsts, xs, g_steps, ql, qvl, fu, ptr, lfl, invl,
@@ -1548,7 +1549,7 @@ def solve_pixels(
             if lanes:
                 _lane_assemble(
                     True, nl, ql, qvl, qdl, qvdl, fu, evrs, evlos, evhis, evcs, zzs,
-                    g_k, max(g_k[:nl].max(), 0), rl, sw, spec, spec_first, g_spec_w, par,
+                    g_k, rl, sw, spec, spec_first, g_spec_w, par,
                 )  # fmt: skip
             _solve_group(
                 nl, todo, qms, qvs, firsts, xs, g_steps, ql, qvl, fu, ptr, lfl, invl,
