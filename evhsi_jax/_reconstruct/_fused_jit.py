@@ -626,30 +626,58 @@ ROWS_PER_PASS = 4
 
 @njit(slp=True)
 @no_type_check
-def _lane_rows(rows, los, his, cs, ws, counts, nl, nrows, rl, sw, ql, qvl, fu, m):
+def _lane_rows(rows, los, his, cs, ws, counts, nl, nrows, rl, sw, st, ql, qvl, fu, m):
     """Q += w² r rᵀ (lower triangle), q += w² r c for the rows j < nrows of the
     group's pixels, four side by side: row j of pixel l is `rows[l, j]`, zero outside
     `[los[l, j], his[l, j])`, with weight `ws[l, j]` and constant `cs[l, j]`; a pixel
     has no row j ≥ `counts[l]` (its row buffer is zero there).
 
     Four rows of the four pixels at a time (one load and store of Q for four rows:
-    the loops are short, and their overhead is most of the cost), over the union of
-    their spans, each entry updated row after row: per lane the same operations in
-    the same order as :func:`_acc_stored`, plus products with exact zeros, so each
-    pixel's Q is the one-pixel kernel's. `rl` (16 M) and `sw` (32) are work space:
-    the chunk's rows interleaved by lane, their w² and constants."""
+    the loops are short, and their overhead is most of the cost), each entry updated
+    row after row: per lane the same operations in the same order as
+    :func:`_acc_stored`, plus products with exact zeros, so each pixel's Q is the
+    one-pixel kernel's. Row i of Q is updated from the first column of the chunk's
+    rows that reach i, not from the first column of their union: with the union, one
+    long row of one pixel had widened the group's envelope (and so the
+    factorisation's work) over the whole chunk — 2.2× the factorisation's
+    multiply-adds on the ideal ColorChecker. `rl` (16 M), `sw` (32) and `st`
+    (M + 32, int) are work space: the chunk's rows interleaved by lane, their w² and
+    constants, the first column per row of Q and the rows' spans in order."""
     l0, l1, l2, l3 = _lane_index(nl)
     m4 = _u(4 * m)
+    slo = st[m:]  # the chunk's row spans, ordered by their first column
+    shi = st[m + 4 * ROWS_PER_PASS :]
     for j0 in range(0, nrows, ROWS_PER_PASS):
-        lo = m
+        ns = 0
         hi = 0
         for j in range(j0, min(j0 + ROWS_PER_PASS, nrows)):
             for lane in (l0, l1, l2, l3):
                 if j < counts[lane] and his[lane, j] > los[lane, j]:
-                    lo = min(lo, los[lane, j])
-                    hi = max(hi, his[lane, j])
-        if hi <= lo:
+                    a = los[lane, j]
+                    b = his[lane, j]
+                    hi = max(hi, b)
+                    q = ns
+                    while q > 0 and slo[q - 1] > a:
+                        slo[q] = slo[q - 1]
+                        shi[q] = shi[q - 1]
+                        q -= 1
+                    slo[q] = a
+                    shi[q] = b
+                    ns += 1
+        if ns == 0:
             continue
+        lo = slo[0]
+        # Row i of Q gets entries from column st[i] on: the first column of the
+        # chunk's rows that reach i (not of their union, which would widen Q's
+        # envelope); i + 1 where none does.
+        for i in range(lo, hi):
+            st[i] = i + 1
+        cov = lo
+        for q in range(ns):
+            a = slo[q]
+            for i in range(max(a, cov), shi[q]):
+                st[i] = a
+            cov = max(cov, shi[q])
         for r in range(ROWS_PER_PASS):
             j = j0 + r
             o = _u(r) * m4
@@ -676,13 +704,16 @@ def _lane_rows(rows, los, his, cs, ws, counts, nl, nrows, rl, sw, ql, qvl, fu, m
                 sw[4 * r + lane] = w * w
                 sw[16 + 4 * r + lane] = cs[src, j] if w != 0.0 else 0.0
         for i in range(lo, hi):
+            s0 = st[i]
+            if s0 > i:
+                continue
             e = _u(4 * i)
             a00, a01, a02, a03 = _lane_coefs(sw, 0, rl, e)
             a10, a11, a12, a13 = _lane_coefs(sw, 1, rl, e + m4)
             a20, a21, a22, a23 = _lane_coefs(sw, 2, rl, e + _u(2) * m4)
             a30, a31, a32, a33 = _lane_coefs(sw, 3, rl, e + _u(3) * m4)
             base = _u(4 * i * m)
-            for jj in range(_u(lo), _u(i + 1)):
+            for jj in range(_u(s0), _u(i + 1)):
                 f = base + _u(4) * jj
                 g = _u(4) * jj
                 q0 = ql[f]
@@ -715,8 +746,8 @@ def _lane_rows(rows, los, his, cs, ws, counts, nl, nrows, rl, sw, ql, qvl, fu, m
             qvl[e + _u(1)] = v1
             qvl[e + _u(2)] = v2
             qvl[e + _u(3)] = v3
-            if lo < fu[i]:
-                fu[i] = lo
+            if s0 < fu[i]:
+                fu[i] = s0
 
 
 @njit
@@ -1098,7 +1129,7 @@ def _solve_group(
 @njit(inline=True)
 @no_type_check
 def _lane_assemble(
-    restore, nl, ql, qvl, qdl, qvdl, fu, evrs, evlos, evhis, evcs, zzs, g_k, rl, sw,
+    restore, nl, ql, qvl, qdl, qvdl, fu, evrs, evlos, evhis, evcs, zzs, g_k, rl, sw, st,
     spec, spec_first, g_spec_w, par,
 ):  # fmt: skip
     """:func:`_assemble` of the group's four pixels in the lane layout: Q, q ← (the
@@ -1108,7 +1139,9 @@ def _lane_assemble(
     if restore:
         _lane_copy(qdl, qvdl, ql, qvl, fu, m)
     nrows = max(g_k[:nl].max(), 0)  # the most event rows of the group's pixels
-    _lane_rows(evrs, evlos, evhis, evcs, zzs, g_k, nl, nrows, rl, sw, ql, qvl, fu, m)
+    _lane_rows(
+        evrs, evlos, evhis, evcs, zzs, g_k, nl, nrows, rl, sw, st, ql, qvl, fu, m
+    )  # fmt: skip
     _lane_priors(
         ql, fu, spec, spec_first, g_spec_w, nl, par[P_RIDGE], par[P_SPEC_TRACE], m
     )
@@ -1220,6 +1253,7 @@ def solve_pixels(
     gl = np.zeros(LANES * m)
     rl = np.zeros(LANES * ROWS_PER_PASS * m)
     sw = np.zeros(2 * LANES * ROWS_PER_PASS)
+    rw = np.zeros(m + 8 * ROWS_PER_PASS, np.int64)  # _lane_rows' work space
     fu = np.arange(m)
     ptr = np.zeros(m, np.int64)
     fail = np.zeros(LANES, np.bool_)
@@ -1442,7 +1476,7 @@ def solve_pixels(
             )  # fmt: skip
         if lanes:  # the group's systems, side by side, as the one-pixel code's
             _lane_rows(
-                adrs, adlo, adhi, adc, ad_w, ad_n, nl, n_ad, rl, sw, ql, qvl, fu, m
+                adrs, adlo, adhi, adc, ad_w, ad_n, nl, n_ad, rl, sw, rw, ql, qvl, fu, m
             )  # fmt: skip
             for lane in range(nl):
                 for j in range(n_ad):
@@ -1455,7 +1489,7 @@ def solve_pixels(
                 _lane_copy(ql, qvl, qdl, qvdl, fu, m)
             _lane_assemble(
                 False, nl, ql, qvl, qdl, qvdl, fu, evrs, evlos, evhis, evcs, zzs, g_k,
-                rl, sw, spec, spec_first, g_spec_w, par,
+                rl, sw, rw, spec, spec_first, g_spec_w, par,
             )  # fmt: skip
         # The group's pixels solved together; then each pixel's further passes.
         for lane in range(group):
@@ -1490,7 +1524,7 @@ def solve_pixels(
             if lanes:
                 _lane_assemble(
                     True, nl, ql, qvl, qdl, qvdl, fu, evrs, evlos, evhis, evcs, zzs,
-                    g_k, rl, sw, spec, spec_first, g_spec_w, par,
+                    g_k, rl, sw, rw, spec, spec_first, g_spec_w, par,
                 )  # fmt: skip
             _solve_group(
                 nl, todo, qms, qvs, firsts, xs, g_steps, ql, qvl, fu, ptr, lfl, invl,
@@ -1549,7 +1583,7 @@ def solve_pixels(
             if lanes:
                 _lane_assemble(
                     True, nl, ql, qvl, qdl, qvdl, fu, evrs, evlos, evhis, evcs, zzs,
-                    g_k, rl, sw, spec, spec_first, g_spec_w, par,
+                    g_k, rl, sw, rw, spec, spec_first, g_spec_w, par,
                 )  # fmt: skip
             _solve_group(
                 nl, todo, qms, qvs, firsts, xs, g_steps, ql, qvl, fu, ptr, lfl, invl,
