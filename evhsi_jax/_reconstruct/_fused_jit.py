@@ -1430,7 +1430,11 @@ def solve_pixels(
                         i_tgt = max(wa * i_a + sgf * i_b, 1e-3 * base)
                     w_int = w_int0 / i_tgt if norm else w_int0
                     rr = adrs[lane, s * g + j] if lanes else row
-                    segs = ((bg, fg, w_int), (ba, fa, -w_int * ca), (bb, fb, -w_int * cb))
+                    segs = (
+                        (bg, fg, w_int),
+                        (ba, fa, -w_int * ca),
+                        (bb, fb, -w_int * cb),
+                    )
                     _add_bands(rr, segs, table, span_lo, span_hi, lohi)
                     if lanes:  # kept, added with the group's (_lane_rows)
                         adlo[lane, s * g + j] = lohi[0]
