@@ -872,9 +872,42 @@ def _lane_unpack(ql, qvl, fu, lane, qm, qv, first, m):
 
 @njit
 @no_type_check
+def _column_grid(off, par, ipar, table, span_lo, span_hi, cspan, crow):
+    """The band on the time grid of one sweep of a column (offset `off`), for
+    :func:`_lowpass_rows`: at local grid point jj, the table rows interpolated,
+    ``crow[jj, c - lo] = (1 - f) table[b, c] + f table[b + 1, c]`` over the span
+    ``[lo, hi) = cspan[jj]`` (hi ≤ lo: no band). The grid's band depends on the
+    column only, and the fused path hands a worker the pixels column by column
+    (:func:`._fused.solve_fused`), so each column's grid is formed once for all its
+    pixels: formed per pixel, its table loads (rows ~3 kB apart from one grid point
+    to the next, in a 4 MB table) stalled the photoreceptor rows (sampling
+    profile), and the interpolation was done twice per point."""
+    n = ipar[I_SAMPLES]
+    dt = par[P_PERIOD] / n
+    ntab = table.shape[0]
+    for jj in range(n):
+        b, f = _band_local(jj * dt, off, par, ntab)
+        if b < 0:
+            cspan[jj, 0] = 0
+            cspan[jj, 1] = 0
+            continue
+        lo = min(span_lo[b], span_lo[b + 1])
+        hi = max(span_hi[b], span_hi[b + 1])
+        cspan[jj, 0] = lo
+        cspan[jj, 1] = hi
+        t0 = table[b]
+        t1 = table[b + 1]
+        g0 = 1.0 - f
+        row = crow[jj]
+        for c in range(lo, hi):
+            row[c - lo] = t0[c] * g0 + t1[c] * f
+
+
+@njit
+@no_type_check
 def _lowpass_rows(
-    x0, tr, step, w_log, k, phase, off, par, ipar, table, span_lo, span_hi, vv, fq,
-    qpos, qi0, order, evr, evc, evlo, evhi, lp_b, lp_f,
+    x0, tr, step, w_log, k, phase, par, ipar, cspan, crow, vv, fq, qpos, qi0, order,
+    evr, evc, evlo, evhi, lp_f,
 ):  # fmt: skip
     """Event rows of the photoreceptor model linearised at `x0`
     (:func:`._problem._lowpass_rows`): the filtered $[\\log L, a/L]$ on the rig's
@@ -885,14 +918,14 @@ def _lowpass_rows(
     scale $S = \\prod α$ (renormalised before it underflows), so a step costs the
     band's span, not M + 1; F is formed only at the grid points the queries need,
     over the channels the band has touched so far. What a grid point needs that does
-    not depend on the earlier ones (band, intensity, decay, logarithm) is computed
-    first, in short passes over all points, into `lp_b`/`lp_f`."""
+    not depend on the earlier ones (intensity, decay, logarithm) is computed first,
+    in short passes over all points, into `lp_f`. The band at each point comes from
+    the column's grid `cspan`/`crow` (:func:`_column_grid`)."""
     m = x0.size
     n = ipar[I_SAMPLES]
     period = par[P_PERIOD]
     dt = period / n
     g_n = ipar[I_SWEEPS] * n + 1
-    ntab = table.shape[0]
     d_w = max(par[P_DW], 1e-6)
     eta = par[P_ETA]
     # Queries: 2i at the event, 2i + 1 at its reference; positions on the grid.
@@ -913,20 +946,25 @@ def _lowpass_rows(
     pa = 0
     pb = 0
     # First what a grid point needs that does not depend on the earlier points, in
-    # short passes over all points: one point's band lookup, intensity and
-    # transcendental functions are a long chain of latencies, and in one loop with
-    # the recursion they would not overlap from one point to the next (measured: the
-    # call took twice as long). The band's table row and fraction at the grid's local
-    # time (j mod n) dt.
+    # short passes over all points: one point's intensity and transcendental
+    # functions are a long chain of latencies, and in one loop with the recursion
+    # they would not overlap from one point to the next (measured: the call took
+    # twice as long). The intensity at x0 (four partial sums, as _band_dot):
     for j in range(g_end):
-        lp_b[j], lp_f[0, j] = _band_local((j % n) * dt, off, par, ntab)
-    for j in range(g_end):  # the intensity at x0
-        b = lp_b[j]
-        inten = par[P_BASE_REL]
-        if b >= 0:
-            lo = min(span_lo[b], span_lo[b + 1])
-            hi = max(span_hi[b], span_hi[b + 1])
-            inten += _band_dot(table, b, lp_f[0, j], x0, lo, hi)
+        row = crow[j % n]
+        lo = cspan[j % n, 0]
+        n4 = max(cspan[j % n, 1] - lo, 0) // 4
+        s0 = s1 = s2 = s3 = 0.0
+        for q in range(_u(n4)):
+            c = _u(4) * q
+            v = _u(lo) + c
+            s0 += row[c] * x0[v]
+            s1 += row[c + _u(1)] * x0[v + _u(1)]
+            s2 += row[c + _u(2)] * x0[v + _u(2)]
+            s3 += row[c + _u(3)] * x0[v + _u(3)]
+        for c in range(_u(4 * n4), _u(max(cspan[j % n, 1] - lo, 0))):
+            s0 += row[c] * x0[_u(lo) + c]
+        inten = par[P_BASE_REL] + ((s0 + s1) + (s2 + s3))
         lp_f[1, j] = max(inten, 0.0)
     for j in range(g_end):  # its decay over the step, logarithm and reciprocal
         inten = lp_f[1, j]
@@ -938,7 +976,6 @@ def _lowpass_rows(
     vlo = m  # channels V has touched: [vlo, vhi)
     vhi = 0
     for j in range(g_end):
-        b = lp_b[j]
         alpha = lp_f[1, j]
         if alpha < 1e-200:  # F forgets its past (below 1e-200 of it): restart
             for c in range(m + 1):
@@ -953,16 +990,13 @@ def _lowpass_rows(
             scale *= alpha
             wgt = (1.0 - alpha) / scale
         vv[0] += wgt * lp_f[2, j]
-        if b >= 0:
-            lo = min(span_lo[b], span_lo[b + 1])
-            hi = max(span_hi[b], span_hi[b + 1])
-            t0 = table[b]
-            t1 = table[b + 1]
-            f = lp_f[0, j]
-            g0 = 1.0 - f
+        lo = cspan[j % n, 0]
+        hi = cspan[j % n, 1]
+        if hi > lo:
+            row = crow[j % n]
             wl = wgt * lp_f[3, j]
-            for c in range(_u(lo), _u(hi)):
-                vv[c + _u(1)] += wl * (t0[c] * g0 + t1[c] * f)
+            for c in range(_u(hi - lo)):
+                vv[_u(lo + 1) + c] += wl * row[c]
             vlo = min(vlo, lo)
             vhi = max(vhi, hi)
         # F_j completes the queries on [j - 1, j] and starts those on [j, j + 1]
@@ -1206,8 +1240,18 @@ def solve_pixels(
     lp_passes = ipar[I_LOWPASS] if lowpass else 0
     nbuf = 2 * kmax if lowpass else 1
     n_grid = sweeps * ipar[I_SAMPLES] + 1 if lowpass else 1
-    lp_b = np.zeros(n_grid, np.int64)
     lp_f = np.zeros((4, n_grid))
+    # The band on one sweep's time grid of the column last used (_column_grid).
+    n_col = ipar[I_SAMPLES] if lowpass else 1
+    w_col = 1
+    for b in range(ntab - 1):
+        w_col = max(
+            w_col,
+            max(span_hi[b], span_hi[b + 1]) - min(span_lo[b], span_lo[b + 1]),
+        )
+    cspan = np.zeros((n_col, 2), np.int64)
+    crow = np.zeros((n_col, w_col if lowpass else 1))
+    col_done = np.nan
     vv = np.zeros(m + 1)
     fq = np.zeros((nbuf, m + 1))
     qpos = np.zeros(nbuf)
@@ -1511,10 +1555,15 @@ def solve_pixels(
                     continue
                 k = g_k[lane]
                 _clear_events(evrs[lane], evlos[lane], evhis[lane], k)
+                if not g_off[lane] == col_done:
+                    _column_grid(
+                        g_off[lane], par, ipar, table, span_lo, span_hi, cspan, crow
+                    )  # fmt: skip
+                    col_done = g_off[lane]
                 _lowpass_rows(
                     xs[lane], traws[lane], steps2[lane], wns[lane], k, g_phase[lane],
-                    g_off[lane], par, ipar, table, span_lo, span_hi, vv, fq, qpos, qi0,
-                    order, evrs[lane], evcs[lane], evlos[lane], evhis[lane], lp_b, lp_f,
+                    par, ipar, cspan, crow, vv, fq, qpos, qi0, order, evrs[lane],
+                    evcs[lane], evlos[lane], evhis[lane], lp_f,
                 )  # fmt: skip
                 zz = zzs[lane]
                 for i in range(k):
