@@ -4,7 +4,8 @@ Switching stages of the kernel off one at a time also changes what is left (a mi
 row narrows Q's envelope, so the factorisation gets cheaper too); a sampling profile
 does not. numba's machine code has no symbols `perf` can see, so the script writes a
 perf map (`/tmp/perf-<pid>.map`: start, size and name of each function of the kernel's
-compiled module, from numba's code library), which `perf report` reads.
+compiled module, from numba's code library and the symbol table of its object code),
+which `perf report` reads.
 
 Setup: one sweep of the ColorChecker at `--size` (default 96×144), paper rig with the
 `--sensor` preset (as `bench_kernel_ab.py`), the true rig as the calibration; the
@@ -53,6 +54,35 @@ def _short(mangled: str) -> str:
     return parts[-1] if parts else mangled
 
 
+def _elf_sizes(obj: bytes) -> dict[str, int]:
+    """Size of each function symbol of an ELF64 object file (numba's compiled module):
+    the perf map's ranges. Taken up to the next function's start instead, a function
+    followed by a gap in memory had claimed the samples of whatever code lay in the
+    gap (e.g. the simulator's XLA code: ~5–15 % "_lane_clear")."""
+    shoff = int.from_bytes(obj[0x28:0x30], "little")
+    shentsize = int.from_bytes(obj[0x3A:0x3C], "little")
+    shnum = int.from_bytes(obj[0x3C:0x3E], "little")
+    secs = []
+    for i in range(shnum):
+        h = obj[shoff + i * shentsize : shoff + (i + 1) * shentsize]
+        # (type, offset, size, link)
+        fields = ((4, 8), (24, 32), (32, 40), (40, 44))
+        secs.append(tuple(int.from_bytes(h[a:b], "little") for a, b in fields))
+    sizes = {}
+    for typ, off, size, link in secs:
+        if typ != 2:  # SHT_SYMTAB
+            continue
+        str_off = secs[link][1]
+        for e in range(off, off + size, 24):
+            name_at = int.from_bytes(obj[e : e + 4], "little")
+            if obj[e + 4] & 0xF != 2:  # STT_FUNC
+                continue
+            end = obj.index(b"\0", str_off + name_at)
+            name = obj[str_off + name_at : end].decode()
+            sizes[name] = int.from_bytes(obj[e + 16 : e + 24], "little")
+    return sizes
+
+
 def child(args):
     from _kernel_setup import fused_inputs
 
@@ -74,9 +104,11 @@ def child(args):
         (lib.get_pointer_to_function(n), n) for n in names
         if lib.get_pointer_to_function(n)
     )  # fmt: skip
+    sizes = _elf_sizes(lib._get_compiled_object())
     with open(f"/tmp/perf-{os.getpid()}.map", "w") as f:
         for (a, n), (b, _) in zip(starts_, starts_[1:] + [(starts_[-1][0] + 4096, "")]):
-            f.write(f"{a:x} {b - a:x} evhsi_kernel:{_short(n)}\n")
+            f.write(f"{a:x} {min(b - a, sizes.get(n, b - a)):x} "
+                    f"evhsi_kernel:{_short(n)}\n")  # fmt: skip
     t = time.perf_counter()
     for _ in range(args.repeats):
         solve()
