@@ -11,13 +11,19 @@ Filter: $X = Y H (1 + λ) / (H^2 + λ)$ per channel, with $H$ the kernel's (real
 transfer function on an edge-padded FFT grid: a Wiener filter scaled to pass a uniform
 area unchanged. λ trades sharpness against noise: the reconstruction's per-pixel error
 is roughly white, and $(1 + λ) / (2\\sqrt{λ})$ bounds its amplification at any
-frequency. A pure NumPy post-process of the cube (no solve is
-changed); not differentiable.
+frequency. A NumPy/SciPy post-process of the cube (no solve is changed); not
+differentiable. The transforms are real-to-complex (`scipy.fft.rfft2`: the cube and
+the filter are real, so half the spectrum suffices) on every core: on a 360×640
+`realistic` capture NumPy's complex transforms on one core had been a quarter of the
+whole reconstruction (4.0 of 16.2 s).
 """
 
 from __future__ import annotations
 
 import numpy as np
+import scipy.fft
+
+from .._base import shard
 
 __all__ = ["gaussian_kernel_1d", "deblur_cube", "DEFAULT_WIENER_REG"]
 
@@ -62,6 +68,8 @@ def deblur_cube(
     hx = _transfer(k, big.shape[1])
     tf = hy[:, None] * hx[None, :]
     gain = (tf * (1.0 + reg) / (tf * tf + reg))[..., None]  # DC gain 1: levels kept
-    spec = np.fft.fft2(big, axes=(0, 1))
-    out = np.fft.ifft2(spec * gain, axes=(0, 1)).real
+    cores = shard.usable_cores()
+    spec = scipy.fft.rfft2(big, axes=(0, 1), workers=cores)
+    spec *= gain[:, : spec.shape[1]]  # (rfft's frequencies: the first half of fft's)
+    out = scipy.fft.irfft2(spec, s=big.shape[:2], axes=(0, 1), workers=cores)
     return out[pad : pad + h, pad : pad + w].astype(np.float32)
