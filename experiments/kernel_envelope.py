@@ -1,0 +1,104 @@
+"""Width of the lane factorisation's envelope and its multiply-adds, per group of four
+pixels, for today's fused kernel and optionally an earlier revision's.
+
+The envelope (the first column in use in each row of Q, the smallest over the group's
+four pixels) sets the factorisation's work: Σ_i w_i (w_i + 1) / 2 multiply-adds for
+row widths w_i. It is read where the kernel hands Q to the lane solve
+(`_solve_lanes`), by running the kernel's Python source (`py_func`) for the group
+steps around compiled inner functions: slow, hence a sample of pixels.
+
+Setup: one sweep of the ColorChecker at `--size` (default 96×144), paper rig with the
+`--sensor` preset (as `bench_kernel_ab.py`), every `--stride`-th pixel with events, at
+most `--pixels` of them.
+
+    python experiments/kernel_envelope.py [--old 397cbe3] [--sensor ideal]
+        [--pixels 80] [--stride 97] [--out PATH]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+from _kernel_setup import fused_inputs
+from bench_kernel_ab import KERNEL, load_kernel
+
+
+def envelope(mod, setup, sel):
+    """Mean row width of the envelope and mean multiply-adds of the factorisation per
+    lane solve, over the solves of the pixels `sel`."""
+    widths = []
+    solve = mod._solve_lanes
+
+    def spy(ql, qvl, fu, *rest):
+        widths.append(np.arange(fu.size) - fu)
+        return solve(ql, qvl, fu, *rest)
+
+    mod._solve_lanes = spy
+    mod._solve_group = mod._solve_group.py_func
+    mod._lane_assemble = mod._lane_assemble.py_func
+    prob = setup.prob
+    starts, use, t_rel, sgn, lead, thr_on, thr_off = setup.args
+    m = prob.channels
+    args = (
+        np.ascontiguousarray(starts, np.int64), np.ascontiguousarray(use, np.int64),
+        np.ascontiguousarray(t_rel, np.float64), np.ascontiguousarray(sgn, np.int8),
+        np.ascontiguousarray(lead, np.float64), prob.col_off, np.int64(prob.width),
+        np.ascontiguousarray(thr_on, np.float64),
+        np.ascontiguousarray(thr_off, np.float64), prob.table, prob.tabsum,
+        prob.span_lo, prob.span_hi, prob.spec, prob.spec_first, prob.dark, prob.par,
+        prob.ipar,
+    )  # fmt: skip
+    x, kkt, steps = np.empty((sel.size, m)), np.empty(sel.size), np.empty(sel.size, int)
+    mod.solve_pixels.py_func(sel, *args, x, kkt, steps)
+    w = np.array(widths)
+    return {"solves": len(w), "mean_width": float(w.mean()),
+            "max_width": int(w.max()),
+            "factor_madds": float((w * (w + 1) / 2).sum(1).mean())}  # fmt: skip
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--old", default=None, help="git revision to compare with")
+    ap.add_argument(
+        "--sensor", default="ideal", choices=["ideal", "noise", "realistic"]
+    )
+    ap.add_argument("--size", default="96x144")
+    ap.add_argument("--pixels", type=int, default=80)
+    ap.add_argument("--stride", type=int, default=97)
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args()
+    root = Path(__file__).resolve().parent.parent
+    setup = fused_inputs(args.sensor, args.size)
+    sel = np.ascontiguousarray(setup.sel[:: args.stride][: args.pixels], np.int64)
+    sources = {"new": (root / KERNEL).read_text()}
+    if args.old:
+        sources["old"] = subprocess.run(
+            ["git", "show", f"{args.old}:{KERNEL}"], cwd=root, check=True,
+            capture_output=True, text=True,
+        ).stdout  # fmt: skip
+    res = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        sys.path.insert(0, tmp)
+        for k, src in sources.items():
+            res[k] = envelope(
+                load_kernel(src, f"kernel_env_{k}", Path(tmp)), setup, sel
+            )
+            print(f"{k} ({args.old if k == 'old' else 'working tree'}): "
+                  f"{res[k]['solves']} lane solves, envelope {res[k]['mean_width']:.1f} "
+                  f"columns per row (max {res[k]['max_width']}), "
+                  f"{res[k]['factor_madds']:.0f} multiply-adds per factorisation")  # fmt: skip
+    if args.out:
+        Path(args.out).write_text(json.dumps(
+            {"sensor": args.sensor, "size": args.size, "pixels": int(sel.size),
+             "old": args.old, **res}, indent=2,
+        ))  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
