@@ -59,23 +59,33 @@ def load_kernel(source: str, name: str, folder: Path):
     return mod
 
 
-def main():
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--old", required=True, help="git revision of the earlier kernel")
-    ap.add_argument(
-        "--sensor", default="realistic", choices=["ideal", "noise", "realistic"]
-    )
-    ap.add_argument("--size", default="96x144")
-    ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--out", default=None)
-    args = ap.parse_args()
+def kernel_source(rev: str | None) -> str:
+    """The kernel's source at git revision `rev` (None: the working tree)."""
     root = Path(__file__).resolve().parent.parent
-    old_src = subprocess.run(
-        ["git", "show", f"{args.old}:{KERNEL}"], cwd=root, check=True,
+    if rev is None:
+        return (root / KERNEL).read_text()
+    return subprocess.run(
+        ["git", "show", f"{rev}:{KERNEL}"], cwd=root, check=True,
         capture_output=True, text=True,
     ).stdout  # fmt: skip
-    new_src = (root / KERNEL).read_text()
+
+
+def setup_args(doc: str, sensor: str) -> argparse.ArgumentParser:
+    """The options of a kernel study: --sensor, --size, --out."""
+    ap = argparse.ArgumentParser(description=doc.split("\n")[0])
+    ap.add_argument("--sensor", default=sensor, choices=["ideal", "noise", "realistic"])
+    ap.add_argument("--size", default="96x144")
+    ap.add_argument("--out", default=None)
+    return ap
+
+
+def main():
+    ap = setup_args(__doc__, "realistic")
+    ap.add_argument("--old", required=True, help="git revision of the earlier kernel")
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--threads", type=int, default=1)
+    args = ap.parse_args()
+    old_src, new_src = kernel_source(args.old), kernel_source(None)
 
     setup = fused_inputs(args.sensor, args.size)
     prob, sel, (h, w) = setup.prob, setup.sel, setup.size

@@ -17,16 +17,14 @@ most `--pixels` of them.
 
 from __future__ import annotations
 
-import argparse
 import json
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
 from _kernel_setup import fused_inputs
-from bench_kernel_ab import KERNEL, load_kernel
+from bench_kernel_ab import kernel_source, load_kernel, setup_args
 
 
 def envelope(mod, setup, sel):
@@ -63,25 +61,16 @@ def envelope(mod, setup, sel):
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = setup_args(__doc__, "ideal")
     ap.add_argument("--old", default=None, help="git revision to compare with")
-    ap.add_argument(
-        "--sensor", default="ideal", choices=["ideal", "noise", "realistic"]
-    )
-    ap.add_argument("--size", default="96x144")
     ap.add_argument("--pixels", type=int, default=80)
     ap.add_argument("--stride", type=int, default=97)
-    ap.add_argument("--out", default=None)
     args = ap.parse_args()
-    root = Path(__file__).resolve().parent.parent
     setup = fused_inputs(args.sensor, args.size)
     sel = np.ascontiguousarray(setup.sel[:: args.stride][: args.pixels], np.int64)
-    sources = {"new": (root / KERNEL).read_text()}
+    sources = {"new": kernel_source(None)}
     if args.old:
-        sources["old"] = subprocess.run(
-            ["git", "show", f"{args.old}:{KERNEL}"], cwd=root, check=True,
-            capture_output=True, text=True,
-        ).stdout  # fmt: skip
+        sources["old"] = kernel_source(args.old)
     res = {}
     with tempfile.TemporaryDirectory() as tmp:
         sys.path.insert(0, tmp)
