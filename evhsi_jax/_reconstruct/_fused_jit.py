@@ -170,30 +170,6 @@ def _dot1(a, ia, v, k0, k1):
 
 @njit(inline=True)
 @no_type_check
-def _band_dot(table, b, f, v, k0, k1):
-    """Σ_{k0 ≤ k < k1} ((1 - f) table[b, k] + f table[b + 1, k]) v[k], four partial
-    sums (the band interpolated at the fraction `f` of its table rows, against v)."""
-    t0 = table[b]
-    t1 = table[b + 1]
-    g0 = 1.0 - f
-    s0 = 0.0
-    s1 = 0.0
-    s2 = 0.0
-    s3 = 0.0
-    n4 = (k1 - k0) // 4
-    for q in range(_u(n4)):
-        k = _u(k0) + _u(4) * q
-        s0 += (t0[k] * g0 + t1[k] * f) * v[k]
-        s1 += (t0[k + _u(1)] * g0 + t1[k + _u(1)] * f) * v[k + _u(1)]
-        s2 += (t0[k + _u(2)] * g0 + t1[k + _u(2)] * f) * v[k + _u(2)]
-        s3 += (t0[k + _u(3)] * g0 + t1[k + _u(3)] * f) * v[k + _u(3)]
-    for k in range(_u(k0 + 4 * n4), _u(k1)):
-        s0 += (t0[k] * g0 + t1[k] * f) * v[k]
-    return (s0 + s1) + (s2 + s3)
-
-
-@njit(inline=True)
-@no_type_check
 def _factor(qm, first, free, lf, inv):
     """Envelope Cholesky of Q restricted to the free variables (identity rows for the
     fixed ones): L's off-diagonal into `lf` (inside the envelope), the reciprocals of
@@ -949,7 +925,7 @@ def _lowpass_rows(
     # short passes over all points: one point's intensity and transcendental
     # functions are a long chain of latencies, and in one loop with the recursion
     # they would not overlap from one point to the next (measured: the call took
-    # twice as long). The intensity at x0 (four partial sums, as _band_dot):
+    # twice as long). The intensity at x0 (four partial sums, as _dot1):
     for j in range(g_end):
         row = crow[j % n]
         lo = cspan[j % n, 0]
@@ -1242,15 +1218,16 @@ def solve_pixels(
     n_grid = sweeps * ipar[I_SAMPLES] + 1 if lowpass else 1
     lp_f = np.zeros((4, n_grid))
     # The band on one sweep's time grid of the column last used (_column_grid).
+    # (a row holds its span only: ~22 of M values, a third of the memory to cache)
     n_col = ipar[I_SAMPLES] if lowpass else 1
     w_col = 1
-    for b in range(ntab - 1):
+    for b in range(ntab - 1 if lowpass else 0):
         w_col = max(
             w_col,
             max(span_hi[b], span_hi[b + 1]) - min(span_lo[b], span_lo[b + 1]),
         )
     cspan = np.zeros((n_col, 2), np.int64)
-    crow = np.zeros((n_col, w_col if lowpass else 1))
+    crow = np.zeros((n_col, w_col))
     col_done = np.nan
     vv = np.zeros(m + 1)
     fq = np.zeros((nbuf, m + 1))
