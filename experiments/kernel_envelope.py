@@ -26,6 +26,8 @@ import numpy as np
 from _kernel_setup import fused_inputs
 from bench_kernel_ab import kernel_source, load_kernel, setup_args
 
+from evhsi_jax._reconstruct import _fused
+
 
 def envelope(mod, setup, sel):
     """Mean row width of the envelope and mean multiply-adds of the factorisation per
@@ -40,18 +42,8 @@ def envelope(mod, setup, sel):
     mod._solve_lanes = spy
     mod._solve_group = mod._solve_group.py_func
     mod._lane_assemble = mod._lane_assemble.py_func
-    prob = setup.prob
-    starts, use, t_rel, sgn, lead, thr_on, thr_off = setup.args
-    m = prob.channels
-    args = (
-        np.ascontiguousarray(starts, np.int64), np.ascontiguousarray(use, np.int64),
-        np.ascontiguousarray(t_rel, np.float64), np.ascontiguousarray(sgn, np.int8),
-        np.ascontiguousarray(lead, np.float64), prob.col_off, np.int64(prob.width),
-        np.ascontiguousarray(thr_on, np.float64),
-        np.ascontiguousarray(thr_off, np.float64), prob.table, prob.tabsum,
-        prob.span_lo, prob.span_hi, prob.spec, prob.spec_first, prob.dark, prob.par,
-        prob.ipar,
-    )  # fmt: skip
+    m = setup.prob.channels
+    args = _fused.kernel_inputs(setup.prob, *setup.args)
     x, kkt, steps = np.empty((sel.size, m)), np.empty(sel.size), np.empty(sel.size, int)
     mod.solve_pixels.py_func(sel, *args, x, kkt, steps)
     w = np.array(widths)

@@ -146,6 +146,20 @@ class FusedProblem:
         self.channels = m
 
 
+def kernel_inputs(prob: FusedProblem, starts, use, t_sorted, s_sorted, lead, thr_on,
+                  thr_off) -> tuple:  # fmt: skip
+    """The arguments of the kernel's `solve_pixels` between `sel` and the outputs."""
+    return (
+        np.ascontiguousarray(starts, np.int64), np.ascontiguousarray(use, np.int64),
+        np.ascontiguousarray(t_sorted, np.float64),
+        np.ascontiguousarray(s_sorted, np.int8), np.ascontiguousarray(lead, np.float64),
+        prob.col_off, np.int64(prob.width), np.ascontiguousarray(thr_on, np.float64),
+        np.ascontiguousarray(thr_off, np.float64), prob.table, prob.tabsum,
+        prob.span_lo, prob.span_hi, prob.spec, prob.spec_first, prob.dark, prob.par,
+        prob.ipar,
+    )  # fmt: skip
+
+
 def solve_fused(
     prob: FusedProblem,
     sel: np.ndarray,
@@ -169,15 +183,7 @@ def solve_fused(
     x = np.empty((n, m))
     kkt = np.empty(n)
     steps = np.empty(n, np.int64)
-    args = (
-        np.ascontiguousarray(starts, np.int64), np.ascontiguousarray(use, np.int64),
-        np.ascontiguousarray(t_sorted, np.float64),
-        np.ascontiguousarray(s_sorted, np.int8), np.ascontiguousarray(lead, np.float64),
-        prob.col_off, np.int64(prob.width), np.ascontiguousarray(thr_on, np.float64),
-        np.ascontiguousarray(thr_off, np.float64), prob.table, prob.tabsum,
-        prob.span_lo, prob.span_hi, prob.spec, prob.spec_first, prob.dark, prob.par,
-        prob.ipar,
-    )  # fmt: skip
+    args = kernel_inputs(prob, starts, use, t_sorted, s_sorted, lead, thr_on, thr_off)
     sel = np.ascontiguousarray(sel, np.int64)
     back = None
     if prob.lowpass and n > 1:  # column by column (see FusedProblem.lowpass)
