@@ -829,11 +829,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--backend",
         default="auto",
-        choices=["auto", "jax", "fused"],
+        choices=["auto", "jax", "fused", "cuda"],
         help="auto (default): the fused CPU kernel (each pixel's system formed from "
         "band segments and solved in float64 on every core) where it applies — "
-        "active-set solver, solve on a CPU — else the JAX kernels; jax or fused to "
-        "choose (fused refuses what it cannot run)",
+        "active-set solver, solve on a CPU — the CUDA kernel (Gram and box QP of "
+        "each pixel on the GPU's chip) on a CUDA GPU, else the JAX kernels; jax, "
+        "fused or cuda to choose (fused and cuda refuse what they cannot run)",
     )
     p.add_argument(
         "--threads",

@@ -2,8 +2,9 @@
 
 Setup: the paper rig (`Rig()`), one sweep of the ColorChecker at `--size` (default
 720×1280), simulated on the device, then reconstructed with `ev.reconstruct` (solver
-`auto`, float32, the sensor's true per-pixel thresholds as after a calibration, batch
-sizes by device kind: `evhsi_jax.reconstruction.batch_sizes`). Reported, each the median
+`auto`, backend `jax`; `--backends cuda` adds the CUDA kernel's whole call), float32,
+the sensor's true per-pixel thresholds as after a calibration, batch sizes by device
+kind: `evhsi_jax.reconstruction.batch_sizes`). Reported, each the median
 of `--repeats` warm runs in this process after one cold run (compilation):
 
 - `simulate`: `ev.simulate` of the sweep (events back on the host);
@@ -23,6 +24,7 @@ of `--repeats` warm runs in this process after one cold run (compilation):
 
     python experiments/bench_gpu.py [--size 720x1280] [--repeats 3] [--out PATH]
         [--cases ideal,noise] [--batch-variants 65536x65536,262144x262144]
+        [--backends jax,cuda]
 
 Writes `experiments/results/bench_gpu.json` (or `--out`). On a CPU use a small
 `--size` (the full sensor takes minutes there); the GPU figures in the README were
@@ -153,6 +155,9 @@ def main():
     ap.add_argument("--out", default="experiments/results/bench_gpu.json")
     ap.add_argument("--cases", default="ideal,noise")
     ap.add_argument("--batch-variants", default="")
+    ap.add_argument(
+        "--backends", default="", help="also time the whole call with these (jax,cuda)"
+    )
     args = ap.parse_args()
     h, w = ev.forward.parse_size(args.size)
     dev = jax.devices()[0]
@@ -168,8 +173,14 @@ def main():
             matmul_gflops(1024 if jax.default_backend() == "cpu" else 8192)
         ],
     }
-    print(report, flush=True)
     rig = ev.Rig()
+    report["auto_backend"] = (
+        "cuda"
+        if pipe._use_cuda("auto", False, pipe.solver_spec("auto"),
+                          pipe.ProblemConfig(), rig, None)  # fmt: skip
+        else "jax or fused"
+    )
+    print(report, flush=True)
     scene = ev.load_scene("colorchecker", (h, w))
     truth = scene.truth_cube(rig.grid)
 
@@ -189,14 +200,16 @@ def main():
         "ideal path": rig,
         "noise path": ev.Rig(threshold_noise=0.01, timestamp_jitter_us=5.0),
     }
+    cubes_by_backend = {}
     wanted = args.cases.split(",")
     cases = {k: v for k, v in cases.items() if k.split()[0] in wanted}
     for name, cal in cases.items():
 
-        def rec(cal=cal):
+        def rec(cal=cal, backend="jax"):
             return ev.reconstruct(
-                events, cal, threshold_on_map=maps[0], threshold_off_map=maps[1]
-            )
+                events, cal, threshold_on_map=maps[0], threshold_off_map=maps[1],
+                backend=backend,
+            )  # fmt: skip
 
         cube, cold, warm = timed(rec, args.repeats)
         med = statistics.median(warm)
@@ -213,6 +226,33 @@ def main():
         row["device_px_per_s"] = h * w / row["device_assemble_solve_s"]
         report[name] = row
         print(name, {k: v for k, v in row.items() if "times" not in k}, flush=True)
+        for backend in filter(None, args.backends.split(",")):
+            # The whole call with another backend (cuda: the CUDA kernel, which
+            # auto picks on a CUDA GPU where numba's CUDA target works).
+            try:
+                cube_b, cold_b, warm_b = timed(
+                    lambda cal=cal, backend=backend: rec(cal, backend), args.repeats
+                )  # fmt: skip
+            except Exception as err:  # e.g. no CUDA target: say so, go on
+                row.setdefault("backends", {})[backend] = {"error": repr(err)[:300]}
+                print("  backend", backend, "failed:", repr(err)[:300], flush=True)
+                continue
+            mb = ev.evaluate(cube_b, truth)
+            row.setdefault("backends", {})[backend] = {
+                "cold_s": cold_b,
+                "median_s": statistics.median(warm_b),
+                "times_s": warm_b,
+                "px_per_s": h * w / statistics.median(warm_b),
+                "sam_deg": mb["sam_deg"],
+                "psnr_db": mb["psnr_db"],
+                "sam_to_jax_cube_max_deg": float(
+                    np.max(ev.metrics.sam_map_deg(cube_b, cube))
+                ),
+            }
+            print("  backend", backend, {k: v for k, v in
+                  row["backends"][backend].items() if "times" not in k}, flush=True)  # fmt: skip
+            if name == "ideal path":
+                cubes_by_backend[backend] = cube_b
         if name == "ideal path":
             cube32 = cube
             if pipe.DEVICE_GROUPING == "auto" and jax.default_backend() != "cpu":
@@ -247,6 +287,13 @@ def main():
         "max_deg": float(np.max(d)),
         "float64_sam_deg": ev.evaluate(cube64, truth)["sam_deg"],
     }
+    for backend, cube_b in cubes_by_backend.items():
+        d = ev.metrics.sam_map_deg(cube_b, cube64)
+        report["float64_check"][backend] = {
+            "share_within_0.1deg": float(np.mean(d <= 0.1)),
+            "median_deg": float(np.median(d)),
+            "max_deg": float(np.max(d)),
+        }
     print("float64", report["float64_check"], flush=True)
     _write(report, args.out)
 

@@ -27,7 +27,13 @@ from . import _solvers
 from ._deblur import deblur_cube
 from ._fused import FusedProblem, fused_supported, solve_fused
 from ._pixels import DeviceLists, PixelEvents, bucket_plan, group_pixels, pixel_lists
-from ._problem import ProblemConfig, lit_interval_us, pixel_system, system_from_rows
+from ._problem import (
+    ProblemConfig,
+    lit_interval_us,
+    pixel_system,
+    spectral_prior_matrix,
+    system_from_rows,
+)
 
 __all__ = ["SolverSpec", "SOLVERS", "reconstruct", "ReconstructionInfo", "solver_spec"]
 
@@ -277,27 +283,13 @@ def _solve_chunk(
                 noise[2] > 0, relinearise, lambda r=rows, x=x, k=kkt: (r, x, k)
             )
         for _ in range(cfg.robust_steps):
-            # Iteratively reweighted least squares with Huber weights: rows whose
-            # residual exceeds c standard deviations (a noise event, a missed or
-            # extra crossing) count linearly instead of quadratically.
-            xa = jnp.concatenate([x, jnp.ones_like(x[:, :1])], axis=1)
-            # Residuals in standard deviations of their rows, measured against the larger
-            # of that and the pixel's own typical residual (1.4826 × median |z| over
-            # its events), so a model error shared by all its rows is not an outlier.
-            z = jnp.einsum("bkm,bm->bk", rows.events, xa) / rows.sigma
-            mk = args.mask
-            med = jnp.nanmedian(jnp.where(mk, jnp.abs(z), jnp.nan), axis=1)
-            scale = jnp.maximum(1.4826 * jnp.nan_to_num(med), 1.0)
-            z = z / scale[:, None]
-            big = (jnp.abs(z) > cfg.robust_c) & mk
-            u = jnp.where(big, jnp.sqrt(cfg.robust_c / jnp.abs(z)), 1.0)
-            u = jnp.where(jnp.abs(z) > cfg.robust_reject, 0.0, u)
+            u, any_big = _huber_weights(cfg, rows, args.mask, x)
 
             def resolve(u=u):
                 qm, qv, _ = jax.vmap(lambda r, w: system_from_rows(cfg, r, w))(rows, u)
                 return solve_qp(qm, qv)
 
-            x, kkt = jax.lax.cond(jnp.any(big), resolve, lambda x=x, k=kkt: (x, k))
+            x, kkt = jax.lax.cond(any_big, resolve, lambda x=x, k=kkt: (x, k))
         return x, kkt
 
     def one_batch(args):
@@ -323,6 +315,81 @@ def _solve_chunk(
     with jax.default_matmul_precision(MATMUL_PRECISION):
         x, kkt = jax.lax.map(one_batch, xs)
     return x.reshape(n, -1), kkt.reshape(n)
+
+
+def _huber_weights(cfg: ProblemConfig, rows, mask, x):
+    """One step of iteratively reweighted least squares with Huber weights: rows whose
+    residual exceeds c standard deviations (a noise event, a missed or extra
+    crossing) count linearly instead of quadratically, beyond `robust_reject` not at
+    all. Residuals are in standard deviations of their rows, measured against the
+    larger of that and the pixel's own typical residual (1.4826 × median |z| over its
+    events), so a model error shared by all its rows is not an outlier. Returns the
+    event rows' weights `(n, k)` and whether any row of the batch is far out."""
+    xa = jnp.concatenate([x, jnp.ones_like(x[:, :1])], axis=1)
+    z = jnp.einsum("bkm,bm->bk", rows.events, xa) / rows.sigma
+    med = jnp.nanmedian(jnp.where(mask, jnp.abs(z), jnp.nan), axis=1)
+    scale = jnp.maximum(1.4826 * jnp.nan_to_num(med), 1.0)
+    z = z / scale[:, None]
+    big = (jnp.abs(z) > cfg.robust_c) & mask
+    u = jnp.where(big, jnp.sqrt(cfg.robust_c / jnp.abs(z)), 1.0)
+    u = jnp.where(jnp.abs(z) > cfg.robust_reject, 0.0, u)
+    return u, jnp.any(big)
+
+
+@eqx.filter_jit
+def _chunk_rows(rig, table, cfg: ProblemConfig, px: PixelEvents, sweeps: int,
+                noise=None, x0=None):  # fmt: skip
+    """A chunk's weighted rows (:func:`pixel_system` with `return_rows`; with `x0`,
+    the photoreceptor model linearised there) and each pixel's number of events, for
+    the CUDA kernel."""
+
+    def rows_of(one, x=None):
+        return pixel_system(
+            rig, table, cfg, one, sweeps, noise=noise, return_rows=True, x0=x
+        )
+
+    with jax.default_matmul_precision(MATMUL_PRECISION):
+        rows = jax.vmap(rows_of)(px) if x0 is None else jax.vmap(rows_of)(px, x0)
+    return rows, jnp.sum(px.mask, axis=1, dtype=jnp.int32)
+
+
+@eqx.filter_jit
+def _chunk_huber(cfg: ProblemConfig, rows, mask, x):
+    with jax.default_matmul_precision(MATMUL_PRECISION):
+        return _huber_weights(cfg, rows, mask, x)
+
+
+def _solve_chunk_cuda(rig, table, cfg, spec, sub, px, sweeps, noise=None):
+    """:func:`_solve_chunk` with the CUDA kernel (`backend="cuda"`): JAX forms the
+    rows, the kernel (:mod:`._cuda_kernel`) each pixel's Gram matrix, priors and box
+    QP in the GPU's on-chip memory; the photoreceptor passes and the robust
+    reweighting of the noise model run as in :func:`_solve_chunk`, each solve
+    through the kernel. `sub` is unused (the kernel takes the whole chunk)."""
+    from . import _cuda_kernel as ck
+
+    m = table.values.shape[1]
+    prior = spectral_prior_matrix(m, cfg.m_start_frac, cfg.spec_kind)
+
+    def solve(rows, n, u=None):
+        jax.block_until_ready((rows, n, u))
+        x, kkt, _ = ck.solve_rows(
+            rows, n, prior, cfg.ridge, spec.tol, spec.iters, ev_w=u
+        )  # fmt: skip
+        return ck.to_jax(x), ck.to_jax(kkt)
+
+    rows, n = _chunk_rows(rig, table, cfg, px, sweeps, noise)
+    x, kkt = solve(rows, n)
+    if noise is None:
+        return x, kkt
+    if sweeps <= 4 and float(noise[2]) > 0:
+        for _ in range(cfg.lowpass_passes):
+            rows, n = _chunk_rows(rig, table, cfg, px, sweeps, noise, x)
+            x, kkt = solve(rows, n)
+    for _ in range(cfg.robust_steps):
+        u, any_big = _chunk_huber(cfg, rows, px.mask, x)
+        if bool(any_big):
+            x, kkt = solve(rows, n, u)
+    return x, kkt
 
 
 def _solve_chunk_stored(rig, table, cfg, spec, sub, px, sweeps, noise=None):
@@ -486,11 +553,14 @@ def reconstruct(
       kernel: any solver, noise model and device), `"fused"` (the CPU kernel of
       :mod:`._fused`: each pixel's system formed from band segments and solved where
       it is formed, in float64, on `threads` cores; the active-set solver with the
-      linear lookup, ideal or noise-aware — a `ValueError` says why otherwise) or
-      `"auto"` (default): fused where it applies and the solve would run on a CPU,
-      else JAX. The fused cube is the float64 solve of the same events (within 0.01°
-      SAM of the JAX path run in float64; float32 JAX differs from both by its
-      rounding).
+      linear lookup, ideal or noise-aware — a `ValueError` says why otherwise),
+      `"cuda"` (JAX forms each chunk's rows on a CUDA GPU, the kernel of
+      :mod:`._cuda_kernel` their Gram matrices and box QPs in the GPU's on-chip
+      memory, float32; needs numba's CUDA target, the active-set solver and a
+      float32 rig) or `"auto"` (default): fused where it applies and the solve would
+      run on a CPU, cuda where it applies on a CUDA GPU, else JAX. The fused cube
+      is the float64 solve of the same events (within 0.01° SAM of the JAX path run
+      in float64; float32 JAX and cuda differ from both by their rounding).
     - `threads`: worker threads of the fused backend (default: the usable cores).
     - `mesh`: a `jax.sharding.Mesh` with a `"pixels"` axis
       (:func:`evhsi_jax.sharding.pixel_mesh`): each chunk's pixels are split over its devices,
@@ -555,6 +625,8 @@ def reconstruct(
     chunk_pixels, sub_batch = batch_sizes(chunk_pixels, sub_batch, mesh)
     sub = max(1, min(sub_batch, chunk_pixels))
     solve, n_dev = _solve_chunk_stored, 1
+    if _use_cuda(backend, fused, spec, cfg, rig, mesh):
+        solve = _solve_chunk_cuda
     if mesh is not None:
         solve, n_dev = functools.partial(solve_chunk_sharded, mesh), mesh.devices.size
         sub = shard.sub_batch_for(mesh, sub)
@@ -701,7 +773,26 @@ def reconstruct(
     return cube, info
 
 
-BACKENDS = ("auto", "jax", "fused")
+BACKENDS = ("auto", "jax", "fused", "cuda")
+
+
+def _use_cuda(backend, fused, spec, cfg, rig, mesh) -> bool:
+    """Whether the chunks go to the CUDA kernel: asked for (`"cuda"`, a `ValueError`
+    says why it cannot run), or `"auto"` on a CUDA GPU where it applies."""
+    if fused or backend not in ("cuda", "auto"):
+        return False
+    if backend == "auto" and shard.device_platform(mesh) != "gpu":
+        return False
+    try:
+        from . import _cuda_kernel
+    except Exception as err:  # numba's CUDA target missing or broken
+        if backend == "cuda":
+            raise ValueError(f"the cuda backend cannot run: {err}") from err
+        return False
+    why = _cuda_kernel.why_not(spec, cfg, rig.fwhm_nm.dtype, mesh)
+    if backend == "cuda" and why is not None:
+        raise ValueError(f"the cuda backend cannot run this reconstruction: {why}")
+    return why is None
 
 
 @jax.jit

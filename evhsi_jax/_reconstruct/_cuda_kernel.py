@@ -1,0 +1,634 @@
+"""CUDA kernel of the GPU path: each pixel's Gram matrix, priors and box QP on the
+chip (numba's CUDA target), from the weighted rows that :func:`._problem.pixel_system`
+forms (`return_rows=True`).
+
+The JAX path on a GPU forms Q = RᵀR as a batched matrix product and solves it with
+XLA's batched Cholesky (cuSOLVER): Q goes through the GPU's memory three times and the
+Cholesky runs at ~1 TFLOP/s on an H100 (README, Performance, "One GPU"). Here one
+thread block (one warp) holds one pixel's system in shared memory from the first row
+to the answer:
+
+1. **Q from the rows' spans.** Each row is read once; its nonzero span [lo, hi) is
+   found and only that triangle of Q is updated (the band is ~18 channels of M; the
+   rows outside their span are exact zeros, so the sums are those of the dense
+   product, in another order). Q's envelope (first nonzero column of each row) is
+   kept as in the CPU's fused kernel (:mod:`._fused_jit`).
+2. **Priors** `spec_w · S` and the ridge, as :func:`._problem._system`.
+3. **Envelope Cholesky and the primal active-set method** of
+   :func:`._fused_jit._box_qp` (the same steps as
+   :func:`._solvers.active_set_batch`): right-looking, the rank-1 update of step k
+   limited to the rows whose envelope reaches column k.
+
+Arithmetic is float32, as the JAX path's (its accuracy against a float64 solve is
+measured by `experiments/bench_gpu_kernel.py`). Written against numba's CUDA API only
+(`cuda.shared.array`, `cuda.syncthreads`, `cuda.atomic`) so that numba's CUDA
+simulator runs it on a CPU (`NUMBA_ENABLE_CUDASIM=1`; the tests do, on a few pixels).
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+
+if not hasattr(np, "row_stack"):
+    # numba-cuda (0.2x) registers an overload of np.row_stack when it first compiles;
+    # NumPy 2.5 removed that alias of np.vstack (seen on the H100's image).
+    np.row_stack = np.vstack
+
+from numba import cuda, float32, int32  # noqa: E402
+
+#: Threads per pixel (one warp).
+THREADS = 32
+#: Threads per pixel under the simulator (its barriers are slow; any number ≥ RB).
+SIM_THREADS = 4
+#: Q in a global scratch array after its assembly (one shared triangle per pixel).
+Q_GLOBAL = False
+#: Rows added to Q per pass (per barrier; the accumulation is written out for 4).
+RB = 4
+
+
+def _u(i):
+    """An index as unsigned 32-bit: numba then drops the negative-index wraparound."""
+    return np.uint32(i)
+
+
+@functools.cache
+def make_kernel(m: int, nt: int = THREADS, q_global: bool = False):
+    """The kernel for M = `m` channels and `nt` threads per pixel (shared-memory sizes
+    and loop strides are compile-time). On a GPU `nt` must be 32 (one warp: the
+    reductions are warp shuffles); the simulator takes any `nt` ≥ RB. `q_global`:
+    Q kept in a global scratch array after its assembly (see the kernel)."""
+    nl = m * (m + 1) // 2
+    nq = 1 if q_global else nl
+    m1 = m + 1  # shapes of shared arrays: constants of the closure, not expressions
+    nspan = 2 * RB
+    sim = simulated()
+    u = cuda.jit(device=True, inline=True)(_u)
+
+    # Reductions over the block's threads: warp shuffles on a GPU; through shared
+    # memory in the simulator (it has no shuffles).
+    if sim:
+
+        @cuda.jit(device=True)
+        def red(v, t, buf, op):  # op 0: min, 1: max, 2: sum
+            buf[t] = v
+            cuda.syncthreads()
+            r = buf[0]
+            for s in range(1, nt):
+                if op == 0:
+                    r = min(r, buf[s])
+                elif op == 1:
+                    r = max(r, buf[s])
+                else:
+                    r += buf[s]
+            cuda.syncthreads()
+            return r
+
+    else:
+
+        @cuda.jit(device=True)
+        def red(v, t, buf, op):
+            for off in (16, 8, 4, 2, 1):
+                w = cuda.shfl_xor_sync(0xFFFFFFFF, v, off)
+                if op == 0:
+                    v = min(v, w)
+                elif op == 1:
+                    v = max(v, w)
+                else:
+                    v += w
+            return v
+
+    if sim:
+
+        @cuda.jit(device=True)
+        def span_of(rows, rr, t, ibuf):
+            """[lo, hi): the nonzero channels of row `rr` of `rows` (lo = m, hi = 0
+            when none), the same in every thread."""
+            lo = m
+            hi = 0
+            for c in range(t, m, nt):
+                if rows[rr, c] != 0.0:
+                    lo = min(lo, c)
+                    hi = c + 1
+            return red(int32(lo), t, ibuf, 0), red(int32(hi), t, ibuf, 1)
+
+    else:
+
+        @cuda.jit(device=True)
+        def span_of(rows, rr, t, ibuf):
+            lo = m
+            hi = 0
+            for c0 in range(0, m, 32):  # one vote per 32 channels
+                c = c0 + t
+                nz = c < m and rows[rr, c] != 0.0
+                mask = cuda.ballot_sync(0xFFFFFFFF, nz)
+                if mask != 0:
+                    lo = min(lo, c0 + cuda.ffs(mask) - 1)
+                    hi = max(hi, c0 + 32 - cuda.clz(mask))
+            return lo, hi
+
+    @cuda.jit(device=True)
+    def factor(qs, lf, invd, free, reach, iflag, t):
+        """lf ← the LDLᵀ factor of Q restricted to the free variables (identity on
+        the fixed ones), right-looking, in place over the envelope: column k of lf
+        keeps the trailing matrix's column at step k (c), so that
+        L[i, k] = c_i / c_k and D_k = c_k; invd[k] = 1 / c_k. One barrier per
+        step: every thread reads the column k the last step finished and updates
+        its own rows i > k. iflag[0] = 1 when a pivot is not > 0."""
+        for i in range(m):
+            fi = free[i]
+            oi = i * (i + 1) // 2
+            for j in range(t, i + 1, nt):
+                v = float32(0.0)
+                if fi != 0 and free[j] != 0:
+                    v = qs[u(oi + j)]
+                elif i == j:
+                    v = float32(1.0)
+                lf[u(oi + j)] = v
+        cuda.syncthreads()
+        bad = 0
+        for k in range(m):
+            ok = k * (k + 1) // 2
+            dk = lf[u(ok + k)]
+            if not dk > 0.0:
+                bad = 1
+                break
+            ik = float32(1.0) / dk
+            if t == 0:
+                invd[k] = ik
+            rk = reach[k]
+            o1 = (k + 1) * (k + 2) // 2 + k  # (k + 1, k)
+            for i in range(k + 1 + t, rk, nt):
+                oi = i * (i + 1) // 2
+                cik = lf[u(oi + k)]
+                if cik != 0.0:
+                    f = cik * ik
+                    # lf[i, j] -= f lf[j, k] for k < j <= i, four entries per
+                    # iteration with their loads first (row i and column k are
+                    # apart in memory: the stores cannot feed the next loads).
+                    j = k + 1
+                    ojk = o1
+                    while j + 3 <= i:
+                        o_b = ojk + j + 1
+                        o_c = o_b + j + 2
+                        o_d = o_c + j + 3
+                        a0 = lf[u(oi + j)]
+                        a1 = lf[u(oi + j + 1)]
+                        a2 = lf[u(oi + j + 2)]
+                        a3 = lf[u(oi + j + 3)]
+                        c0 = lf[u(ojk)]
+                        c1 = lf[u(o_b)]
+                        c2 = lf[u(o_c)]
+                        c3 = lf[u(o_d)]
+                        lf[u(oi + j)] = a0 - f * c0
+                        lf[u(oi + j + 1)] = a1 - f * c1
+                        lf[u(oi + j + 2)] = a2 - f * c2
+                        lf[u(oi + j + 3)] = a3 - f * c3
+                        ojk = o_d + j + 4
+                        j += 4
+                    while j <= i:
+                        lf[u(oi + j)] -= f * lf[u(ojk)]
+                        ojk += j + 1
+                        j += 1
+            cuda.syncthreads()
+        if t == 0:
+            iflag[0] = bad
+        cuda.syncthreads()
+
+    @cuda.jit(device=True)
+    def solve(lf, invd, free, first, reach, qv, out, t):
+        """out = −Q_free⁻¹ q on the free variables (0 on the fixed ones) from the
+        LDLᵀ factor: z = L⁻¹b, w = D⁻¹z, out = L⁻ᵀw, one barrier per step."""
+        for i in range(t, m, nt):
+            out[i] = -qv[i] if free[i] != 0 else float32(0.0)
+        cuda.syncthreads()
+        for k in range(m):
+            zk = out[k] * invd[k]
+            if zk != 0.0:
+                for i in range(k + 1 + t, reach[k], nt):
+                    out[i] -= lf[u(i * (i + 1) // 2 + k)] * zk
+            cuda.syncthreads()
+        for i in range(t, m, nt):
+            out[i] *= invd[i]
+        cuda.syncthreads()
+        for k in range(m - 1, -1, -1):
+            xk = out[k]
+            if xk != 0.0:
+                ok = k * (k + 1) // 2
+                for j in range(first[k] + t, k, nt):
+                    out[j] -= lf[u(ok + j)] * invd[j] * xk
+            cuda.syncthreads()
+        for i in range(t, m, nt):
+            if free[i] == 0:
+                out[i] = float32(0.0)
+        cuda.syncthreads()
+
+    @cuda.jit(device=True)
+    def gradient(qs, qv, first, reach, x, g, t):
+        """g = Q x + q (Q symmetric, its lower triangle inside the envelope)."""
+        for i in range(t, m, nt):
+            s = qv[i]
+            oi = i * (i + 1) // 2
+            for j in range(first[i], i + 1):
+                s += qs[u(oi + j)] * x[j]
+            oj = (i + 1) * (i + 2) // 2 + i  # (i + 1, i)
+            for j in range(i + 1, reach[i]):
+                s += qs[u(oj)] * x[j]
+                oj += j + 1
+            g[i] = s
+        cuda.syncthreads()
+
+    @cuda.jit
+    def kernel(
+        ev, use_w, ev_w, ev_n, drift, spec, spec_first, spec_w, ridge_rel, spec_trace,
+        tol, max_iters, qg, out_x, out_kkt, out_steps,
+    ):  # fmt: skip
+        b = cuda.blockIdx.x
+        t = cuda.threadIdx.x
+        if b >= out_x.shape[0]:
+            return
+        if ev_n[b] <= 0:  # a padding slot (a pixel without events is never solved)
+            for i in range(t, m, nt):
+                out_x[b, i] = float32(0.0)
+            if t == 0:
+                out_kkt[b] = np.nan
+                out_steps[b] = 0
+            return
+        qs = cuda.shared.array(nq, float32)
+        lf = cuda.shared.array(nl, float32)
+        # Q is accumulated in shared memory; with `q_global` in `lf` and kept in the
+        # global scratch `qg[b]` from the factorisation on (one shared triangle per
+        # pixel instead of two: twice the pixels per multiprocessor).
+        if q_global:
+            acc = lf
+            qsrc = qg[b]
+        else:
+            acc = qs
+            qsrc = qs
+        rows = cuda.shared.array((RB, m1), float32)
+        qv = cuda.shared.array(m, float32)
+        invd = cuda.shared.array(m, float32)
+        x = cuda.shared.array(m, float32)
+        p = cuda.shared.array(m, float32)
+        g = cuda.shared.array(m, float32)
+        free = cuda.shared.array(m, int32)
+        first = cuda.shared.array(m, int32)
+        reach = cuda.shared.array(m, int32)
+        span = cuda.shared.array(nspan, int32)
+        iflag = cuda.shared.array(4, int32)
+        fsh = cuda.shared.array(4, float32)
+        ibuf = cuda.shared.array(nt, int32)  # the simulator's reductions
+        fbuf = cuda.shared.array(nt, float32)
+        for e in range(t, nl, nt):
+            acc[u(e)] = float32(0.0)
+        for i in range(t, m, nt):
+            qv[i] = float32(0.0)
+            first[i] = i
+        # 1. Q += Σ r rᵀ, q += Σ r c over the rows, RB rows per pass: the pass's rows
+        # (dense, zero outside their spans) go to shared memory with their spans,
+        # then thread t adds them to the columns j ≡ t (mod nt) of Q over the
+        # pass's union of spans, one read-modify-write of Q per entry and pass.
+        n_ev = ev_n[b]
+        n_rows = n_ev + drift.shape[1]
+        for r0 in range(0, n_rows, RB):
+            for rr in range(RB):
+                r = r0 + rr
+                w = float32(1.0)
+                if r < n_ev and use_w != 0:
+                    w = ev_w[b, r]
+                for c in range(t, m1, nt):
+                    v = float32(0.0)
+                    if r < n_ev:
+                        v = ev[b, r, c] * w
+                    elif r < n_rows:
+                        v = drift[b, r - n_ev, c]
+                    rows[rr, c] = v
+            cuda.syncthreads()
+            for rr in range(RB):
+                lo, hi = span_of(rows, rr, t, ibuf)
+                if t == 0:
+                    span[2 * rr] = lo
+                    span[2 * rr + 1] = hi
+            cuda.syncthreads()
+            lo_all = m
+            hi_all = 0
+            for rr in range(RB):
+                if span[2 * rr + 1] > span[2 * rr]:
+                    lo_all = min(lo_all, span[2 * rr])
+                    hi_all = max(hi_all, span[2 * rr + 1])
+            for j in range(lo_all + t, hi_all, nt):
+                r0j = rows[0, j]
+                r1j = rows[1, j]
+                r2j = rows[2, j]
+                r3j = rows[3, j]
+                o = j * (j + 1) // 2 + j
+                i = j
+                while i < hi_all:  # entries (i, j), (i + 1, j): loads first
+                    i1 = min(i + 1, hi_all - 1)
+                    o1 = o + i + 1
+                    s0 = (rows[0, u(i)] * r0j + rows[1, u(i)] * r1j) + (
+                        rows[2, u(i)] * r2j + rows[3, u(i)] * r3j
+                    )
+                    s1 = (rows[0, u(i1)] * r0j + rows[1, u(i1)] * r1j) + (
+                        rows[2, u(i1)] * r2j + rows[3, u(i1)] * r3j
+                    )
+                    q0 = acc[u(o)]
+                    if i + 1 < hi_all:
+                        q1 = acc[u(o1)]
+                        acc[u(o)] = q0 + s0
+                        acc[u(o1)] = q1 + s1
+                    else:
+                        acc[u(o)] = q0 + s0
+                    o = o1 + i + 2
+                    i += 2
+                qv[j] += (rows[0, m] * r0j + rows[1, m] * r1j) + (
+                    rows[2, m] * r2j + rows[3, m] * r3j
+                )
+                for rr in range(RB):
+                    if span[2 * rr] <= j < span[2 * rr + 1] and span[2 * rr] < first[j]:
+                        first[j] = span[2 * rr]
+            cuda.syncthreads()
+        # 2. Priors: spec_w S inside its envelope, the ridge on the diagonal.
+        sw = spec_w[b]
+        tr = float32(0.0)
+        for i in range(t, m, nt):
+            tr += acc[u(i * (i + 1) // 2 + i)]
+        tr = red(tr, t, fbuf, 2)
+        ridge = ridge_rel * ((tr + sw * spec_trace) / float32(m) + float32(1e-30))
+        for i in range(t, m, nt):
+            oi = i * (i + 1) // 2
+            for j in range(spec_first[i], i + 1):
+                acc[u(oi + j)] += sw * spec[i, j]
+            acc[u(oi + i)] += ridge
+            if spec_first[i] < first[i]:
+                first[i] = spec_first[i]
+            free[i] = 1
+        cuda.syncthreads()
+        # The rows each column of the factor reaches: rows i with first[i] <= k.
+        for k in range(t, m, nt):
+            reach[k] = k + 1
+        cuda.syncthreads()
+        for i in range(t, m, nt):
+            cuda.atomic.max(reach, first[i], i + 1)
+        cuda.syncthreads()
+        if t == 0:
+            for k in range(1, m):
+                if reach[k] < reach[k - 1]:
+                    reach[k] = reach[k - 1]
+        qmax = float32(0.0)
+        for i in range(t, m, nt):
+            qmax = max(qmax, abs(acc[u(i * (i + 1) // 2 + i)]))
+        qmax = red(qmax, t, fbuf, 1)
+        cuda.syncthreads()
+        if q_global:
+            for e in range(t, nl, nt):
+                qsrc[u(e)] = acc[u(e)]
+            cuda.syncthreads()
+        # 3. The unconstrained minimiser, then the active-set steps (_box_qp).
+        factor(qsrc, lf, invd, free, reach, iflag, t)
+        steps = 0
+        failed = iflag[0] != 0
+        if not failed:
+            solve(lf, invd, free, first, reach, qv, x, t)
+            if t == 0:
+                neg = 0
+                for i in range(m):
+                    if x[i] < 0.0:
+                        neg = 1
+                    if x[i] <= 0.0:
+                        x[i] = float32(0.0)
+                        free[i] = 0
+                iflag[1] = 1 - neg  # done
+            cuda.syncthreads()
+        while not failed and iflag[1] == 0 and steps < max_iters:
+            steps += 1
+            factor(qsrc, lf, invd, free, reach, iflag, t)
+            if iflag[0] != 0:
+                failed = True
+                break
+            solve(lf, invd, free, first, reach, qv, p, t)
+            if t == 0:
+                jb = -1
+                best = float32(np.inf)
+                for i in range(m):
+                    if free[i] != 0 and p[i] < 0.0:
+                        ratio = x[i] / (x[i] - p[i])
+                        if ratio < best:
+                            best = ratio
+                            jb = i
+                iflag[2] = jb
+                fsh[2] = min(max(best, float32(0.0)), float32(1.0))
+            cuda.syncthreads()
+            jb = iflag[2]
+            if jb >= 0:  # blocked: move to the first bound, fix it
+                alpha = fsh[2]
+                for i in range(t, m, nt):
+                    x[i] = max(x[i] + alpha * (p[i] - x[i]), float32(0.0))
+                cuda.syncthreads()
+                if t == 0:
+                    x[jb] = float32(0.0)
+                    free[jb] = 0
+                cuda.syncthreads()
+                continue
+            gradient(qsrc, qv, first, reach, p, g, t)
+            if t == 0:
+                pmax = float32(1e-30)
+                for i in range(m):
+                    pmax = max(pmax, abs(p[i]))
+                lim = -tol * qmax * pmax
+                jr = -1
+                best = float32(np.inf)
+                for i in range(m):
+                    if free[i] == 0 and g[i] < lim and g[i] < best:
+                        best = g[i]
+                        jr = i
+                for i in range(m):
+                    x[i] = p[i]
+                if jr >= 0:
+                    free[jr] = 1
+                else:
+                    iflag[1] = 1
+            cuda.syncthreads()
+        # 4. The answer and its KKT residual (NaN and -1 when a factorisation failed).
+        if failed:
+            for i in range(t, m, nt):
+                out_x[b, i] = np.nan
+            if t == 0:
+                out_kkt[b] = np.nan
+                out_steps[b] = -1
+            return
+        gradient(qsrc, qv, first, reach, x, g, t)
+        kkt = float32(0.0)
+        for i in range(t, m, nt):
+            kkt = max(kkt, abs(x[i] - max(x[i] - g[i] / qmax, float32(0.0))))
+            out_x[b, i] = x[i]
+        kkt = red(kkt, t, fbuf, 1)
+        if t == 0:
+            out_kkt[b] = kkt
+            out_steps[b] = steps
+
+    return kernel
+
+
+def prior_envelope(spec: np.ndarray) -> np.ndarray:
+    """First nonzero column of each row of the prior S (its diagonal if none)."""
+    m = spec.shape[0]
+    nz = np.abs(np.tril(spec)) > 0
+    nz[np.arange(m), np.arange(m)] = True
+    return np.argmax(nz, axis=1).astype(np.int32)
+
+
+_PRIORS: dict = {}
+
+
+def _prior_on_device(spec):
+    """The prior matrix (float32), its envelope and trace, on the device once per
+    prior."""
+    spec = np.asarray(spec, np.float32)
+    key = (spec.shape, spec.tobytes())
+    if key not in _PRIORS:
+        first = prior_envelope(spec)
+        tr = np.float32(np.trace(spec.astype(np.float64)))
+        if simulated():
+            _PRIORS[key] = (spec, first, tr)
+        else:
+            _PRIORS[key] = (cuda.to_device(spec), cuda.to_device(first), tr)
+    return _PRIORS[key]
+
+
+def launch(ev, ev_w, ev_n, drift, spec_w, spec, ridge_rel, tol, max_iters, out_x,
+           out_kkt, out_steps, stream=0, threads=THREADS, q_global=Q_GLOBAL):  # fmt: skip
+    """Solve the pixels of one batch: `ev` (B, K, M+1) event rows with weights `ev_w`
+    (B, K; None: 1), of which the first `ev_n` (B,) are used (the rest is padding;
+    a pixel with none is a padding slot: its answer is 0, KKT NaN, not solved),
+    `drift` (B, G, M+1) anti-drift (and dark-prior) rows, prior weight `spec_w` (B,),
+    the prior matrix `spec` (M, M). Outputs (B, M), (B,), (B,) are written in place.
+    Arrays: anything numba's CUDA target takes (device arrays, or host arrays under
+    the simulator). `threads` per pixel: any number ≥ RB (the simulator's barriers
+    are slow: the tests use a few)."""
+    d_spec, d_first, tr = _prior_on_device(spec)
+    m = d_spec.shape[0]
+    kern = make_kernel(m, threads, q_global)
+    b = out_x.shape[0]
+    if q_global:
+        nl = m * (m + 1) // 2
+        qg = np.zeros((b, nl), np.float32) if simulated() else _scratch(b, nl)
+    else:
+        qg = np.zeros((1, 1), np.float32) if simulated() else _dummy()
+    use_w = ev_w is not None
+    if not use_w:
+        ev_w = np.ones((1, 1), np.float32) if simulated() else _dummy()
+    kern[b, threads, stream](
+        ev, np.int32(use_w), ev_w, ev_n, drift, d_spec, d_first, spec_w,
+        np.float32(ridge_rel), tr, np.float32(tol), np.int32(max_iters), qg, out_x,
+        out_kkt, out_steps,
+    )  # fmt: skip
+
+
+_SCRATCH: dict = {}
+
+
+def _scratch(b, nl):
+    """The global Q scratch of `q_global`, kept between launches (grown as needed)."""
+    have = _SCRATCH.get("q")
+    if have is None or have.shape[0] < b or have.shape[1] != nl:
+        _SCRATCH["q"] = have = cuda.device_array((b, nl), np.float32)
+    return have
+
+
+@functools.cache
+def _dummy():
+    return cuda.to_device(np.ones((1, 1), np.float32))
+
+
+def simulated() -> bool:
+    """True when numba's CUDA target is its CPU simulator (`NUMBA_ENABLE_CUDASIM=1`)."""
+    from numba import config
+
+    return bool(config.ENABLE_CUDASIM)
+
+
+def as_cuda(a):
+    """A JAX (or CuPy) device array as a numba device array, without a copy (the CUDA
+    array interface, else DLPack through CuPy); under the simulator a host array."""
+    if simulated():
+        return np.array(a)  # a writable copy (the simulator copies arguments back)
+    try:
+        return cuda.as_cuda_array(a)
+    except Exception:  # no __cuda_array_interface__: go through DLPack
+        import cupy
+
+        return cuda.as_cuda_array(cupy.from_dlpack(a))
+
+
+def solve_rows(rows, ev_n, spec, ridge_rel, tol, max_iters, ev_w=None,
+               q_global=None):  # fmt: skip
+    """Box-QP answers of a batch of pixels from their rows (:class:`._problem.
+    PixelRows` with a leading batch axis, float32, on the GPU): `(x, kkt, steps)` as
+    numba device arrays (host arrays under the simulator). The JAX arrays must be
+    ready (`jax.block_until_ready`); the kernel runs on numba's default stream and
+    this returns after it finished. `ev_n` (B,) int32: each pixel's event rows (the
+    rest of `rows.events` is padding); `ev_w`: optional weights of the event rows."""
+    ev = rows.events
+    b = ev.shape[0]
+    m = ev.shape[2] - 1
+    if ev_w is not None:
+        ev_w = as_cuda(ev_w)
+    if simulated():
+        out_x = np.zeros((b, m), np.float32)
+        out_kkt = np.zeros(b, np.float32)
+        out_steps = np.zeros(b, np.int32)
+    else:
+        out_x = cuda.device_array((b, m), np.float32)
+        out_kkt = cuda.device_array(b, np.float32)
+        out_steps = cuda.device_array(b, np.int32)
+    launch(
+        as_cuda(ev), ev_w, as_cuda(ev_n), as_cuda(rows.drift),
+        as_cuda(rows.spec_weight), spec, ridge_rel, tol, max_iters, out_x, out_kkt,
+        out_steps, threads=SIM_THREADS if simulated() else THREADS,
+        q_global=Q_GLOBAL if q_global is None else q_global,
+    )  # fmt: skip
+    if not simulated():
+        cuda.synchronize()
+    return out_x, out_kkt, out_steps
+
+
+def to_jax(a):
+    """A numba device array as a JAX array on the same GPU (DLPack, through CuPy
+    where numba's array has no `__dlpack__`; a host round trip as the last resort);
+    under the simulator, from the host array."""
+    import jax
+    import jax.numpy as jnp
+
+    if simulated():
+        return jnp.asarray(a)
+    try:
+        return jax.dlpack.from_dlpack(a)
+    except Exception:
+        pass
+    try:
+        import cupy
+
+        return jax.dlpack.from_dlpack(cupy.asarray(a))
+    except Exception:
+        return jax.device_put(a.copy_to_host())
+
+
+def why_not(spec, cfg, dtype, mesh) -> str | None:
+    """Why the CUDA kernel cannot solve this reconstruction (None: it can)."""
+    import jax
+
+    if spec.name != "active-set":
+        return f"solver {spec.name!r} (the kernel is the active-set solver)"
+    if not cfg.nonneg:
+        return "nonneg=False (the kernel solves the box QP)"
+    if np.dtype(dtype) != np.float32:
+        return "a float64 rig (the kernel is float32)"
+    if mesh is not None:
+        return "a device mesh"
+    if simulated():
+        return None
+    if jax.default_backend() != "gpu" or not cuda.is_available():
+        return "no CUDA GPU (JAX's default backend and numba's CUDA target)"
+    return None

@@ -1,0 +1,135 @@
+"""The GPU path's CUDA kernel (`_reconstruct/_cuda_kernel.py`) run in numba's CUDA
+simulator on small random problems (M = 10), against a float64 box-QP solve of the
+same rows. The simulator must be chosen before numba's CUDA target is imported, so
+the kernel runs in a subprocess. On the GPU, `experiments/bench_gpu_kernel.py`
+checks it on a full ColorChecker sweep against float64."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+SCRIPT = r"""
+import json, sys
+import numpy as np
+import pytest
+from evhsi_jax._reconstruct import _cuda_kernel as ck
+from evhsi_jax._reconstruct._problem import spectral_prior_matrix
+from evhsi_jax._reconstruct._fused_jit import _box_qp
+
+assert ck.simulated()
+rng = np.random.default_rng(int(sys.argv[1]))
+m, k, g, b = 10, 7, 5, 4
+ev = np.zeros((b, k, m + 1), np.float32)
+drift = np.zeros((b, g, m + 1), np.float32)
+ev_n = rng.integers(3, k + 1, b).astype(np.int32)
+for arr, n_rows in ((ev, k), (drift, g)):
+    for p in range(b):
+        for r in range(n_rows):
+            lo = rng.integers(0, m - 2)
+            hi = min(m, lo + rng.integers(2, 6))
+            arr[p, r, lo:hi] = rng.normal(size=hi - lo)
+            arr[p, r, m] = rng.normal()
+for p in range(b):  # padding rows carry garbage: the kernel must not read them
+    ev[p, ev_n[p]:, :] = 1e3
+ev_w = rng.uniform(0.2, 1.0, (b, k)).astype(np.float32)
+spec_w = rng.uniform(0.01, 0.1, b).astype(np.float32)
+spec = spectral_prior_matrix(m, 0.3, "d2")
+ridge, tol, iters = 1e-6, 1e-6, 48
+out_x = np.zeros((b, m), np.float32)
+out_kkt = np.zeros(b, np.float32)
+out_steps = np.zeros(b, np.int32)
+ck.launch(ev, ev_w, ev_n, drift, spec_w, spec, ridge, tol, iters, out_x, out_kkt,
+          out_steps, threads=int(sys.argv[2]), q_global=sys.argv[3] == "1")
+ref = np.zeros((b, m))
+for p in range(b):
+    r = ev[p, : ev_n[p]].astype(np.float64) * ev_w[p, : ev_n[p], None]
+    d = drift[p].astype(np.float64)
+    gram = r.T @ r + d.T @ d
+    qm = gram[:m, :m] + spec_w[p] * spec
+    ridge_p = ridge * ((np.trace(gram[:m, :m]) + spec_w[p] * np.trace(spec)) / m + 1e-30)
+    qm += ridge_p * np.eye(m)
+    qv = gram[:m, m].copy()
+    x = np.zeros(m)
+    st = _box_qp(qm, qv, np.zeros(m, np.int64), np.ones(m, bool), np.zeros((m, m)),
+                 np.zeros(m), x, np.zeros(m), np.zeros(m), tol, iters, False)
+    assert st >= 0
+    ref[p] = x
+print(json.dumps({"x": out_x.tolist(), "kkt": out_kkt.tolist(),
+                  "steps": out_steps.tolist(), "ref": ref.tolist()}))
+"""
+
+
+@pytest.mark.parametrize("q_global", ["0", "1"])
+def test_kernel_matches_a_float64_box_qp(q_global):
+    # Four threads per pixel (the GPU runs 32): the loops' strides then wrap around
+    # M, and the simulator's barriers cost less (~2 s per pixel).
+    env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1")
+    res = subprocess.run(
+        [sys.executable, "-c", SCRIPT, "0", "4", q_global], env=env, capture_output=True,
+        text=True, timeout=600,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr[-3000:]
+    out = json.loads(res.stdout.strip().splitlines()[-1])
+    x, ref = np.array(out["x"]), np.array(out["ref"])
+    steps = np.array(out["steps"])
+    assert (steps >= 0).all()
+    # Random rows with random constants: most minimisers have negative channels, so
+    # the active set runs (and the bound is active in the answer).
+    assert steps.sum() > 0 and (ref == 0).any()
+    scale = np.abs(ref).max(axis=1, keepdims=True)
+    np.testing.assert_allclose(x, ref, atol=1e-3 * scale.max(), rtol=0)
+    assert (x >= 0).all()
+    assert np.all(np.array(out["kkt"]) < 1e-3)
+
+
+PIPELINE = r"""
+import json, sys
+import numpy as np
+import jax.random as jr
+import evhsi_jax as ev
+from evhsi_jax._reconstruct import _cuda_kernel as ck
+
+assert ck.simulated()
+kw = {} if sys.argv[1] == "ideal" else {"sensor": "realistic"}
+rig = ev.Rig(channels=16, **kw)
+events = ev.simulate(ev.load_scene("colorchecker", (1, 3)), rig, sweeps=1, key=jr.key(1))
+a, info = ev.reconstruct(events, rig, backend="cuda", return_info=True)
+b = ev.reconstruct(events, rig, backend="jax")
+print(json.dumps({"sam": ev.metrics.sam_map_deg(a, b).tolist(),
+                  "solved": info.solved.tolist(), "kkt": info.kkt.tolist()}))
+"""
+
+
+def _pipeline(case):
+    env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1")
+    res = subprocess.run(
+        [sys.executable, "-c", PIPELINE, case], env=env, capture_output=True,
+        text=True, timeout=900,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr[-3000:]
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def test_reconstruct_backend_cuda_equals_jax_ideal():
+    """`reconstruct(backend="cuda")` (rows by JAX, each pixel's Gram and box QP by
+    the kernel, the chunk's padding slots skipped) against the JAX backend, both
+    float32: the same cube up to rounding (16 channels, 3 pixels: the simulator)."""
+    out = _pipeline("ideal")
+    assert np.all(out["solved"])
+    assert np.max(out["sam"]) < 0.05
+    assert np.all(np.isfinite(out["kkt"]))
+
+
+@pytest.mark.slow
+def test_reconstruct_backend_cuda_equals_jax_realistic():
+    """The same with the realistic preset: the photoreceptor pass (rows relinearised
+    at the kernel's answer) and the robust reweighting (the kernel's row weights)."""
+    out = _pipeline("realistic")
+    assert np.all(out["solved"])
+    assert np.max(out["sam"]) < 0.05
