@@ -11,9 +11,10 @@ median of `--repeats` warm runs in one process (inputs already on the device):
 - `jax_device_s`: `_pipeline._solve_chunk` of every chunk (rows, Gram, Cholesky and
   active set: the device work of the README's one-GPU table);
 - `rows_s`: the rows alone (`pixel_system(..., return_rows=True)`, vmapped, jitted);
-- `kernel_s`: the CUDA kernel on those rows (Gram + priors + box QP), and
-  `kernel_other_layout` the same with Q's other place (shared memory or a global
-  scratch, `_cuda_kernel.Q_GLOBAL`): its time and whether the answers are the same;
+- `kernel_s`: the CUDA kernel on those rows (Gram + priors + box QP), its registers
+  and memory (`kernel_resources`), and `variants` (`--variants`): Q in a global
+  scratch instead of shared memory (`_cuda_kernel.Q_GLOBAL`), register caps — each
+  one's time, resources and whether its answers are the same;
 
 and the accuracy of both answers against a float64 solve of the same float32 rows
 (`--check` pixels drawn at random; `_fused_jit._box_qp` in float64 on the host):
@@ -117,6 +118,10 @@ def main():
     ap.add_argument("--size", default="720x1280")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--check", type=int, default=20000)
+    ap.add_argument(
+        "--variants", default="global:none,shared:64,shared:96,global:64",
+        help="kernel variants to time, PLACE:REGS (shared|global, a cap or none)",
+    )  # fmt: skip
     ap.add_argument("--limit", type=int, default=0, help="pixels per chunk (simulator)")
     ap.add_argument("--out", default="experiments/results/bench_gpu_kernel.json")
     args = ap.parse_args()
@@ -192,11 +197,12 @@ def main():
         [jnp.sum(p.mask, axis=1, dtype=jnp.int32) for p in pxs]
     )
 
-    def kernel(rows, iters=spec_solver.iters, q_global=None):
+    def kernel(rows, iters=spec_solver.iters, q_global=None, max_registers=None):
         return [
             ck.solve_rows(
-                r, n, prior, cfg.ridge, spec_solver.tol, iters, q_global=q_global
-            )
+                r, n, prior, cfg.ridge, spec_solver.tol, iters, q_global=q_global,
+                max_registers=max_registers,
+            )  # fmt: skip
             for r, n in zip(rows, counts, strict=True)
         ]
 
@@ -212,19 +218,33 @@ def main():
     # The same without active-set steps (clipped unconstrained minimisers): what the
     # steps cost.
     _, t_kern0, _ = median_time(lambda: kernel(rows, 0), args.repeats)
-    # The other layout (Q in shared memory or in a global scratch): time and answers.
-    other = not ck.Q_GLOBAL
-    ko, t_other, times_other = median_time(
-        lambda: kernel(rows, q_global=other), args.repeats
-    )
-    same = all(
-        np.array_equal(host(a[0]), host(b[0]), equal_nan=True)
-        for a, b in zip(kx, ko, strict=True)
-    )
-    report["kernel_other_layout"] = {
-        "q_global": other, "s": t_other, "times": times_other, "same_answers": same,
-    }  # fmt: skip
-    print("kernel, other layout", report["kernel_other_layout"], flush=True)
+    report["kernel_resources"] = ck.resources(m)
+    print("kernel resources", report["kernel_resources"], flush=True)
+    # Variants (`--variants`, each `Q_PLACE:REGS`: Q in shared memory or a global
+    # scratch, a register cap or none): time, resources, whether the answers are
+    # the same.
+    report["variants"] = {}
+    for var in filter(None, args.variants.split(",")):
+        place, regs = var.split(":")
+        qg, cap = place == "global", (int(regs) if regs != "none" else None)
+        try:
+            ko, t_v, times_v = median_time(
+                lambda qg=qg, cap=cap: kernel(rows, q_global=qg, max_registers=cap),
+                args.repeats,
+            )  # fmt: skip
+        except Exception as err:
+            report["variants"][var] = {"error": repr(err)[:300]}
+            print("variant", var, "failed", repr(err)[:300], flush=True)
+            continue
+        same = all(
+            np.array_equal(host(a[0]), host(b[0]), equal_nan=True)
+            for a, b in zip(kx, ko, strict=True)
+        )
+        report["variants"][var] = {
+            "s": t_v, "times": times_v, "same_answers": same,
+            **ck.resources(m, qg, cap),
+        }  # fmt: skip
+        print("variant", var, report["variants"][var], flush=True)
     report.update(
         jax_device_s=t_jax, rows_s=t_rows, kernel_s=t_kern, kernel_no_steps_s=t_kern0,
         times={"jax": times_jax, "rows": times_rows, "kernel": times_kern},

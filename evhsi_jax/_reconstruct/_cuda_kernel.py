@@ -44,6 +44,8 @@ THREADS = 32
 SIM_THREADS = 4
 #: Q in a global scratch array after its assembly (one shared triangle per pixel).
 Q_GLOBAL = False
+#: Cap on registers per thread (None: the compiler's choice).
+MAX_REGISTERS = None
 #: Rows added to Q per pass (per barrier; the accumulation is written out for 4).
 RB = 4
 
@@ -54,11 +56,14 @@ def _u(i):
 
 
 @functools.cache
-def make_kernel(m: int, nt: int = THREADS, q_global: bool = False):
+def make_kernel(m: int, nt: int = THREADS, q_global: bool = False,
+                max_registers: int | None = None):  # fmt: skip
     """The kernel for M = `m` channels and `nt` threads per pixel (shared-memory sizes
     and loop strides are compile-time). On a GPU `nt` must be 32 (one warp: the
     reductions are warp shuffles); the simulator takes any `nt` ≥ RB. `q_global`:
-    Q kept in a global scratch array after its assembly (see the kernel)."""
+    Q kept in a global scratch array after its assembly (see the kernel).
+    `max_registers`: a cap on registers per thread (more blocks per multiprocessor
+    where registers limit them; spills go to local memory)."""
     nl = m * (m + 1) // 2
     nq = 1 if q_global else nl
     m1 = m + 1  # shapes of shared arrays: constants of the closure, not expressions
@@ -239,7 +244,9 @@ def make_kernel(m: int, nt: int = THREADS, q_global: bool = False):
             g[i] = s
         cuda.syncthreads()
 
-    @cuda.jit
+    opts = {} if sim or max_registers is None else {"max_registers": max_registers}
+
+    @cuda.jit(**opts)
     def kernel(
         ev, use_w, ev_w, ev_n, drift, spec, spec_first, spec_w, ridge_rel, spec_trace,
         tol, max_iters, qg, out_x, out_kkt, out_steps,
@@ -498,7 +505,8 @@ def _prior_on_device(spec):
 
 
 def launch(ev, ev_w, ev_n, drift, spec_w, spec, ridge_rel, tol, max_iters, out_x,
-           out_kkt, out_steps, stream=0, threads=THREADS, q_global=Q_GLOBAL):  # fmt: skip
+           out_kkt, out_steps, stream=0, threads=THREADS, q_global=Q_GLOBAL,
+           max_registers=MAX_REGISTERS):  # fmt: skip
     """Solve the pixels of one batch: `ev` (B, K, M+1) event rows with weights `ev_w`
     (B, K; None: 1), of which the first `ev_n` (B,) are used (the rest is padding;
     a pixel with none is a padding slot: its answer is 0, KKT NaN, not solved),
@@ -509,7 +517,7 @@ def launch(ev, ev_w, ev_n, drift, spec_w, spec, ridge_rel, tol, max_iters, out_x
     are slow: the tests use a few)."""
     d_spec, d_first, tr = _prior_on_device(spec)
     m = d_spec.shape[0]
-    kern = make_kernel(m, threads, q_global)
+    kern = make_kernel(m, threads, q_global, max_registers)
     b = out_x.shape[0]
     if q_global:
         nl = m * (m + 1) // 2
@@ -563,7 +571,7 @@ def as_cuda(a):
 
 
 def solve_rows(rows, ev_n, spec, ridge_rel, tol, max_iters, ev_w=None,
-               q_global=None):  # fmt: skip
+               q_global=None, max_registers=None):  # fmt: skip
     """Box-QP answers of a batch of pixels from their rows (:class:`._problem.
     PixelRows` with a leading batch axis, float32, on the GPU): `(x, kkt, steps)` as
     numba device arrays (host arrays under the simulator). The JAX arrays must be
@@ -588,6 +596,7 @@ def solve_rows(rows, ev_n, spec, ridge_rel, tol, max_iters, ev_w=None,
         as_cuda(rows.spec_weight), spec, ridge_rel, tol, max_iters, out_x, out_kkt,
         out_steps, threads=SIM_THREADS if simulated() else THREADS,
         q_global=Q_GLOBAL if q_global is None else q_global,
+        max_registers=MAX_REGISTERS if max_registers is None else max_registers,
     )  # fmt: skip
     if not simulated():
         cuda.synchronize()
@@ -632,3 +641,16 @@ def why_not(spec, cfg, dtype, mesh) -> str | None:
     if jax.default_backend() != "gpu" or not cuda.is_available():
         return "no CUDA GPU (JAX's default backend and numba's CUDA target)"
     return None
+
+
+def resources(m: int, q_global: bool = False, max_registers: int | None = None):
+    """Registers and local memory per thread, shared memory per block of the compiled
+    kernel (after a launch compiled it; empty under the simulator)."""
+    kern = make_kernel(m, THREADS, q_global, max_registers)
+    out = {}
+    for key in ("regs_per_thread", "local_mem_per_thread", "shared_mem_per_block"):
+        try:
+            out[key] = int(getattr(kern, "get_" + key)())
+        except Exception:  # the simulator, or an API without it
+            pass
+    return out
