@@ -557,8 +557,9 @@ def reconstruct(
       `"cuda"` (JAX forms each chunk's rows on a CUDA GPU, the kernel of
       :mod:`._cuda_kernel` their Gram matrices and box QPs in the GPU's on-chip
       memory, float32; needs numba's CUDA target, the active-set solver and a
-      float32 rig) or `"auto"` (default): fused where it applies and the solve would
-      run on a CPU, cuda where it applies on a CUDA GPU, else JAX. The fused cube
+      float32 rig; as fast as jax for a whole sweep on an H100, so `"auto"` leaves
+      it out: `AUTO_CUDA`) or `"auto"` (default): fused where it applies and the
+      solve would run on a CPU, else JAX. The fused cube
       is the float64 solve of the same events (within 0.01° SAM of the JAX path run
       in float64; float32 JAX and cuda differ from both by their rounding).
     - `threads`: worker threads of the fused backend (default: the usable cores).
@@ -776,12 +777,22 @@ def reconstruct(
 BACKENDS = ("auto", "jax", "fused", "cuda")
 
 
+#: Whether `backend="auto"` picks the CUDA kernel on a CUDA GPU where it applies.
+#: Off: on an H100 it is as fast as the JAX path for a whole sweep (README,
+#: Performance, "One GPU"), and it depends on numba's CUDA target working with the
+#: installed NumPy; `backend="cuda"` asks for it.
+AUTO_CUDA = False
+
+
 def _use_cuda(backend, fused, spec, cfg, rig, mesh) -> bool:
     """Whether the chunks go to the CUDA kernel: asked for (`"cuda"`, a `ValueError`
-    says why it cannot run), or `"auto"` on a CUDA GPU where it applies."""
+    says why it cannot run), or `"auto"` on a CUDA GPU where it applies when
+    `AUTO_CUDA`."""
     if fused or backend not in ("cuda", "auto"):
         return False
-    if backend == "auto" and shard.device_platform(mesh) != "gpu":
+    if backend == "auto" and (
+        not AUTO_CUDA or shard.device_platform(mesh) != "gpu"
+    ):  # fmt: skip
         return False
     try:
         from . import _cuda_kernel

@@ -230,6 +230,15 @@ def test_backend_choice_and_refusals(captures):
         ev.reconstruct(events, rig, threads=0)
     with pytest.raises(ValueError, match="solver 'apg'"):
         ev.reconstruct(events, rig, backend="fused", solver="apg")
+    # The CUDA kernel needs a CUDA GPU (the simulator's runs are in
+    # test_cuda_kernel.py) and a float32 rig; auto never picks it here.
+    with pytest.raises(ValueError, match="cuda backend cannot run.*(GPU|CUDA)"):
+        ev.reconstruct(events, rig, backend="cuda")
+    with jax.enable_x64(True), pytest.raises(ValueError, match="float64 rig"):
+        ev.reconstruct(events, rig.astype(np.float64), backend="cuda")
+    assert not _pipeline._use_cuda(
+        "auto", False, _pipeline.solver_spec("auto"), ProblemConfig(), rig, None
+    )
     assert _fused.fused_supported(
         _pipeline.solver_spec("auto"), ProblemConfig(lookup_order=3)
     ).startswith("lookup_order 3")
