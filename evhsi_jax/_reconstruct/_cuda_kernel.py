@@ -650,7 +650,10 @@ def resources(m: int, q_global: bool = False, max_registers: int | None = None):
     out = {}
     for key in ("regs_per_thread", "local_mem_per_thread", "shared_mem_per_block"):
         try:
-            out[key] = int(getattr(kern, "get_" + key)())
+            v = getattr(kern, "get_" + key)()
+            if isinstance(v, dict):  # per compiled signature (not specialised)
+                v = max(v.values())
+            out[key] = int(v)
         except Exception:  # the simulator, or an API without it
             pass
     return out
