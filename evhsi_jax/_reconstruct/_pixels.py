@@ -9,6 +9,7 @@ are not put in any bucket (they cost no solve).
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import functools
 
@@ -18,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from .._base import stable_argsort_int, use_numba
+from .._base import shard, stable_argsort_int, use_numba
 from .._model import EventStream
 
 __all__ = [
@@ -223,6 +224,11 @@ def bucket_plan(use, chunk_pixels: int, min_chunk: int | None = None,
     return plan
 
 
+#: Events from which :func:`pixel_lists` runs its passes on every usable core (at most
+#: 8): below, one thread's passes take milliseconds.
+THREADED_LISTS_MIN = 1 << 20
+
+
 def pixel_lists(events: EventStream, t_start_us: int):
     """Every pixel's events, in pixel order and time order within a pixel.
 
@@ -230,16 +236,22 @@ def pixel_lists(events: EventStream, t_start_us: int):
     pixel's events start `(H*W,)`, their times relative to `t_start_us` plus
     `TIMESTAMP_CENTRE_US` (float64) and polarities ±1 (int8): pixel p's events are
     `t_us[starts[p] : starts[p] + counts[p]]`, in time order. With numba one pass
-    counts and one fills the lists (`_group_jit.pixel_lists`); the NumPy path (a
-    stable index sort, then gathers) is the reference."""
+    counts and one fills the lists (`_group_jit.pixel_lists`), each pass split over
+    the usable cores from `THREADED_LISTS_MIN` events on (the same arrays); the NumPy
+    path (a stable index sort, then gathers) is the reference."""
     w, h = events.width, events.height
     if use_numba() and len(events):
         from . import _group_jit
 
-        return _group_jit.pixel_lists(
+        args = (
             events.x, events.y, events.t_us, events.p, np.int64(w), np.int64(w * h),
             np.int64(t_start_us), TIMESTAMP_CENTRE_US,
         )  # fmt: skip
+        workers = min(shard.usable_cores(), 8)
+        if workers > 1 and len(events) >= THREADED_LISTS_MIN:
+            with concurrent.futures.ThreadPoolExecutor(workers) as pool:
+                return _group_jit.pixel_lists_threaded(*args, pool, workers)
+        return _group_jit.pixel_lists(*args)
     pix = events.y.astype(np.int64) * w + events.x.astype(np.int64)
     counts = np.bincount(pix, minlength=w * h)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])

@@ -419,3 +419,19 @@ def test_pixel_lists_kernel_matches_the_numpy_reference(capture):
     for a, b in zip(got, ref):
         assert a.dtype == b.dtype and a.shape == b.shape
         np.testing.assert_array_equal(a, b)
+    # Its passes split over threads (every core, from THREADED_LISTS_MIN events on):
+    # the same arrays, also with slices and block ranges that do not divide evenly.
+    import concurrent.futures
+
+    from evhsi_jax._reconstruct import _group_jit
+    from evhsi_jax._reconstruct._pixels import TIMESTAMP_CENTRE_US
+
+    w, h = events.width, events.height
+    args = (events.x, events.y, events.t_us, events.p, np.int64(w), np.int64(w * h),
+            np.int64(3), TIMESTAMP_CENTRE_US)  # fmt: skip
+    for workers in (2, 3):
+        with concurrent.futures.ThreadPoolExecutor(workers) as pool:
+            par = _group_jit.pixel_lists_threaded(*args, pool, workers)
+        for a, b in zip(par, ref):
+            assert a.dtype == b.dtype
+            np.testing.assert_array_equal(a, b)
