@@ -249,7 +249,8 @@ def cmd_reconstruct(args):
         t_start_us=args.t_start_us,
         progress=not args.quiet,
         return_info=True,
-        mesh=_mesh(args.devices),
+        # The CUDA kernel runs on one GPU: no mesh unless --devices asks for one.
+        mesh=_mesh(1 if args.backend == "cuda" and args.devices is None else args.devices),
         deblur=_DEBLUR[args.deblur],
         backend=args.backend,
         threads=args.threads,

@@ -108,6 +108,14 @@ def test_unwritable_output_is_found_before_any_work(files, capsys):
     assert time.perf_counter() - t0 < 5  # no solve happened (loose: not a benchmark)
 
 
+def test_cuda_backend_without_a_gpu_is_one_line(files, capsys, tmp_path):
+    d, _ = files
+    code, _, err = run(capsys, "reconstruct", d / "ev.npz", "--calib", d / "cal.json",
+                       "--out", tmp_path / "c.npz", "--backend", "cuda")  # fmt: skip
+    one_line_error(code, err, "cuda backend cannot run", "no CUDA GPU")
+    assert not (tmp_path / "c.npz").exists()
+
+
 # --- counted problems: reported, --strict makes them errors ----------------------------
 def test_empty_first_sweep_does_not_poison_the_cube(files, capsys, tmp_path):
     d, events = files

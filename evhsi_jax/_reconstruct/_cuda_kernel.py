@@ -634,12 +634,10 @@ def why_not(spec, cfg, dtype, mesh) -> str | None:
         return "nonneg=False (the kernel solves the box QP)"
     if np.dtype(dtype) != np.float32:
         return "a float64 rig (the kernel is float32)"
-    if mesh is not None:
-        return "a device mesh"
-    if simulated():
-        return None
-    if jax.default_backend() != "gpu" or not cuda.is_available():
+    if not simulated() and (jax.default_backend() != "gpu" or not cuda.is_available()):
         return "no CUDA GPU (JAX's default backend and numba's CUDA target)"
+    if mesh is not None:
+        return "a device mesh (it runs on one GPU: --devices 1)"
     return None
 
 
