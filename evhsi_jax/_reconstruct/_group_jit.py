@@ -88,39 +88,15 @@ def pixel_lists(x, y, t_us, p, width, n_pix, t_start_us, centre):
     for b in range(n_blocks):
         edge[b] = starts[b << shift]
     edge[n_blocks] = n
-    longest = 0
-    for b in range(n_blocks):
-        longest = max(longest, edge[b + 1] - edge[b])
-    # Pass 2: events to their blocks, in time order within a block.
-    fill = edge[:n_blocks].copy()
+    # Pass 2: events to their blocks, in time order within a block (the helpers are
+    # those of the threaded version, below).
     t_out = np.empty(n, np.float64)
     s_out = np.empty(n, np.int8)
     local = np.empty(n, np.uint16)
-    for i in range(n):
-        q = np.int64(y[i]) * width + np.int64(x[i])
-        b = q >> shift
-        j = fill[b]
-        fill[b] = j + 1
-        t_out[j] = np.float64(np.int64(t_us[i]) - t_start_us) + centre
-        s_out[j] = 2 * np.int8(p[i]) - 1
-        local[j] = q - (b << shift)
+    _slice_distribute(x, y, t_us, p, width, t_start_us, centre, edge[:n_blocks].copy(),
+                      t_out, s_out, local)  # fmt: skip
     # Pass 3: within each block, each event to its pixel's next slot.
-    pos = starts.copy()
-    tmp_t = np.empty(longest, np.float64)
-    tmp_s = np.empty(longest, np.int8)
-    for b in range(n_blocks):
-        lo = edge[b]
-        m = edge[b + 1] - lo
-        for k in range(m):
-            tmp_t[k] = t_out[lo + k]
-            tmp_s[k] = s_out[lo + k]
-        base = b << shift
-        for k in range(m):
-            q = base + np.int64(local[lo + k])
-            j = pos[q]
-            pos[q] = j + 1
-            t_out[j] = tmp_t[k]
-            s_out[j] = tmp_s[k]
+    _blocks_place(0, n_blocks, edge, starts.copy(), t_out, s_out, local)
     return counts, starts, t_out, s_out
 
 
