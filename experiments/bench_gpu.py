@@ -51,7 +51,6 @@ from evhsi_jax._model import band_table
 from evhsi_jax._reconstruct import _pipeline as pipe
 from evhsi_jax._reconstruct._pixels import (
     DeviceLists,
-    PixelEvents,
     bucket_plan,
     group_pixels,
 )
@@ -110,18 +109,12 @@ def device_parts(events, rig, maps, repeats, chunk=None, sub=None):
     offs = np.asarray(rig.column_offsets(events.width), np.float64)
     on, off = (np.asarray(m, np.float64).reshape(-1) for m in maps)
     pxs = []
-    for b in batches:
+    for b in batches:  # as reconstruct puts each batch on the device
         pix = np.where(b.pixel >= 0, b.pixel, 0)
-        arrays = (
-            np.where(b.mask, b.t_us, 0.0).astype(dtype),
-            b.polarity.astype(np.int32),
-            b.mask,
-            offs[b.column].astype(dtype),
-            on[pix].astype(dtype),
-            off[pix].astype(dtype),
-            np.zeros(b.pixel.shape, dtype),
-        )
-        pxs.append(PixelEvents(*jax.device_put(arrays)))
+        pxs.append(pipe._device_pixels(
+            b.t_us, b.polarity, b.mask, pix, b.column, np.zeros(pix.shape), offs, on,
+            off, np.dtype(dtype),
+        ))  # fmt: skip
     table = band_table(rig).channels(rig.grid.sub)
     spec = pipe.solver_spec("auto")
     noise_j = None if noise is None else jnp.asarray(noise, dtype)

@@ -48,7 +48,7 @@ from evhsi_jax._model import band_table
 from evhsi_jax._reconstruct import _cuda_kernel as ck
 from evhsi_jax._reconstruct import _pipeline as pipe
 from evhsi_jax._reconstruct._fused_jit import _box_qp
-from evhsi_jax._reconstruct._pixels import PixelEvents, group_pixels
+from evhsi_jax._reconstruct._pixels import group_pixels
 from evhsi_jax._reconstruct._problem import (
     ProblemConfig,
     pixel_system,
@@ -155,16 +155,10 @@ def main():
     for b in batches:
         keep = slice(None) if not args.limit else slice(0, args.limit)
         pix = np.where(b.pixel >= 0, b.pixel, 0)[keep]
-        arrays = (
-            np.where(b.mask, b.t_us, 0.0).astype(dtype)[keep],
-            b.polarity.astype(np.int32)[keep],
-            b.mask[keep],
-            offs[b.column].astype(dtype)[keep],
-            on[pix].astype(dtype),
-            off[pix].astype(dtype),
-            np.zeros(pix.shape, dtype),
-        )
-        pxs.append(PixelEvents(*jax.device_put(arrays)))
+        pxs.append(pipe._device_pixels(  # as reconstruct puts a batch on the device
+            b.t_us[keep], b.polarity[keep], b.mask[keep], pix, b.column[keep],
+            np.zeros(pix.shape), offs, on, off, np.dtype(dtype),
+        ))  # fmt: skip
         pixels.append(np.asarray(b.pixel)[keep])
     report["chunks"] = [list(p.t_us.shape) for p in pxs]
     print("chunks", report["chunks"], flush=True)

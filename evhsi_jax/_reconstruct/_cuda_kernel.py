@@ -8,21 +8,22 @@ Cholesky runs at ~1 TFLOP/s on an H100 (README, Performance, "One GPU"). Here on
 thread block (one warp) holds one pixel's system in shared memory from the first row
 to the answer:
 
-1. **Q from the rows' spans.** Each row is read once; its nonzero span [lo, hi) is
-   found and only that triangle of Q is updated (the band is ~18 channels of M; the
-   rows outside their span are exact zeros, so the sums are those of the dense
-   product, in another order). Q's envelope (first nonzero column of each row) is
-   kept as in the CPU's fused kernel (:mod:`._fused_jit`).
+1. **Q from the rows' spans.** The rows are read four at a time; each row's nonzero
+   span [lo, hi) is found (a warp vote) and only the union of the four spans'
+   triangles of Q is updated (the band is ~18 channels of M; the rows outside their
+   span are exact zeros, so the sums are those of the dense product, in another
+   order). Q's envelope (first nonzero column of each row) is kept as in the CPU's
+   fused kernel (:mod:`._fused_jit`).
 2. **Priors** `spec_w · S` and the ridge, as :func:`._problem._system`.
-3. **Envelope Cholesky and the primal active-set method** of
+3. **Envelope LDLᵀ and the primal active-set method** of
    :func:`._fused_jit._box_qp` (the same steps as
-   :func:`._solvers.active_set_batch`): right-looking, the rank-1 update of step k
-   limited to the rows whose envelope reaches column k.
+   :func:`._solvers.active_set_batch`): right-looking, the update of step k limited
+   to the rows whose envelope reaches column k, one barrier per step.
 
 Arithmetic is float32, as the JAX path's (its accuracy against a float64 solve is
-measured by `experiments/bench_gpu_kernel.py`). Written against numba's CUDA API only
-(`cuda.shared.array`, `cuda.syncthreads`, `cuda.atomic`) so that numba's CUDA
-simulator runs it on a CPU (`NUMBA_ENABLE_CUDASIM=1`; the tests do, on a few pixels).
+measured by `experiments/bench_gpu_kernel.py`). The warp votes and shuffles have
+shared-memory stand-ins under numba's CUDA simulator, which runs the rest of the
+kernel as it is on a CPU (`NUMBA_ENABLE_CUDASIM=1`; the tests do, on a few pixels).
 """
 
 from __future__ import annotations
@@ -283,8 +284,8 @@ def make_kernel(m: int, nt: int = THREADS, q_global: bool = False,
         first = cuda.shared.array(m, int32)
         reach = cuda.shared.array(m, int32)
         span = cuda.shared.array(nspan, int32)
-        iflag = cuda.shared.array(4, int32)
-        fsh = cuda.shared.array(4, float32)
+        iflag = cuda.shared.array(3, int32)  # factorisation failed, done, blocking j
+        fsh = cuda.shared.array(1, float32)  # the blocked step's length
         ibuf = cuda.shared.array(nt, int32)  # the simulator's reductions
         fbuf = cuda.shared.array(nt, float32)
         for e in range(t, nl, nt):
@@ -425,11 +426,11 @@ def make_kernel(m: int, nt: int = THREADS, q_global: bool = False,
                             best = ratio
                             jb = i
                 iflag[2] = jb
-                fsh[2] = min(max(best, float32(0.0)), float32(1.0))
+                fsh[0] = min(max(best, float32(0.0)), float32(1.0))
             cuda.syncthreads()
             jb = iflag[2]
             if jb >= 0:  # blocked: move to the first bound, fix it
-                alpha = fsh[2]
+                alpha = fsh[0]
                 for i in range(t, m, nt):
                     x[i] = max(x[i] + alpha * (p[i] - x[i]), float32(0.0))
                 cuda.syncthreads()

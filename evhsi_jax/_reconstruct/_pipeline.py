@@ -264,18 +264,13 @@ def _solve_chunk(
         return x, jax.vmap(_solvers.kkt_residual)(q_mat, q_vec, x)
 
     def robust_batch(args):
-        def rows_of(one, x0=None):
-            return pixel_system(
-                rig, table, cfg, one, sweeps, noise=noise, return_rows=True, x0=x0
-            )
-
-        rows = jax.vmap(rows_of)(args)
+        rows = _batch_rows(rig, table, cfg, args, sweeps, noise)
         q_mat, q_vec, _ = jax.vmap(lambda r: system_from_rows(cfg, r))(rows)
         x, kkt = solve_qp(q_mat, q_vec)
         for _ in range(cfg.lowpass_passes if sweeps <= 4 else 0):
             # A photoreceptor low-pass: relinearise its model at the current answer.
             def relinearise(rows=rows, x=x):
-                new = jax.vmap(rows_of)(args, x)
+                new = _batch_rows(rig, table, cfg, args, sweeps, noise, x)
                 qm, qv, _ = jax.vmap(lambda r: system_from_rows(cfg, r))(new)
                 return (new, *solve_qp(qm, qv))
 
@@ -336,20 +331,26 @@ def _huber_weights(cfg: ProblemConfig, rows, mask, x):
     return u, jnp.any(big)
 
 
-@eqx.filter_jit
-def _chunk_rows(rig, table, cfg: ProblemConfig, px: PixelEvents, sweeps: int,
-                noise=None, x0=None):  # fmt: skip
-    """A chunk's weighted rows (:func:`pixel_system` with `return_rows`; with `x0`,
-    the photoreceptor model linearised there) and each pixel's number of events, for
-    the CUDA kernel."""
+def _batch_rows(rig, table, cfg, px: PixelEvents, sweeps: int, noise, x0=None):
+    """The weighted rows of a batch of pixels (:func:`pixel_system` with
+    `return_rows`, vmapped; with `x0` `(n, M)`, the photoreceptor model linearised
+    there)."""
 
     def rows_of(one, x=None):
         return pixel_system(
             rig, table, cfg, one, sweeps, noise=noise, return_rows=True, x0=x
         )
 
+    return jax.vmap(rows_of)(px) if x0 is None else jax.vmap(rows_of)(px, x0)
+
+
+@eqx.filter_jit
+def _chunk_rows(rig, table, cfg: ProblemConfig, px: PixelEvents, sweeps: int,
+                noise=None, x0=None):  # fmt: skip
+    """A chunk's rows (:func:`_batch_rows`) and each pixel's number of events, for
+    the CUDA kernel."""
     with jax.default_matmul_precision(MATMUL_PRECISION):
-        rows = jax.vmap(rows_of)(px) if x0 is None else jax.vmap(rows_of)(px, x0)
+        rows = _batch_rows(rig, table, cfg, px, sweeps, noise, x0)
     return rows, jnp.sum(px.mask, axis=1, dtype=jnp.int32)
 
 
