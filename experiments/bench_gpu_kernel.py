@@ -13,8 +13,9 @@ median of `--repeats` warm runs in one process (inputs already on the device):
 - `rows_s`: the rows alone (`pixel_system(..., return_rows=True)`, vmapped, jitted);
 - `kernel_s`: the CUDA kernel on those rows (Gram + priors + box QP), its registers
   and memory (`kernel_resources`), and `variants` (`--variants`): Q in a global
-  scratch instead of shared memory (`_cuda_kernel.Q_GLOBAL`), register caps — each
-  one's time, resources and whether its answers are the same;
+  scratch instead of shared memory (`_cuda_kernel.Q_GLOBAL`), register caps, the
+  next pass's rows read ahead (`pf`, `_cuda_kernel.PREFETCH`) — each one's time,
+  resources and whether its answers are the same;
 
 and the accuracy of both answers against a float64 solve of the same float32 rows
 (`--check` pixels drawn at random; `_fused_jit._box_qp` in float64 on the host):
@@ -23,6 +24,10 @@ same run's float32 matmul GFLOP/s (default precision) is reported beside them.
 
     python experiments/bench_gpu_kernel.py [--size 720x1280] [--repeats 5]
         [--check 20000] [--out experiments/results/bench_gpu_kernel.json]
+        [--variants global:none,shared:none:pf] [--save-rows rows.npz]
+
+`--save-rows NPZ` also writes one chunk's rows, the input of
+`profile_gpu_kernel.py` (a profiler attached to a process without JAX).
 
 On a CPU, `NUMBA_ENABLE_CUDASIM=1` runs the kernel in numba's simulator: use a tiny
 `--size` and `--limit` (a few pixels; minutes per hundred pixels).
@@ -119,9 +124,15 @@ def main():
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--check", type=int, default=20000)
     ap.add_argument(
-        "--variants", default="global:none,shared:64,shared:96,global:64",
-        help="kernel variants to time, PLACE:REGS (shared|global, a cap or none)",
+        "--variants", default="global:none,shared:none:pf,shared:64",
+        help="kernel variants to time, PLACE:REGS[:pf|nopf] (shared|global, a "
+        "register cap or none; pf / nopf: the next pass's rows read ahead or not)",
     )  # fmt: skip
+    ap.add_argument(
+        "--save-rows", default="", metavar="NPZ",
+        help="also save one chunk's rows (--save-rows-chunk) for profile_gpu_kernel.py",
+    )  # fmt: skip
+    ap.add_argument("--save-rows-chunk", default="3:32768", metavar="CHUNK:PIXELS")
     ap.add_argument("--limit", type=int, default=0, help="pixels per chunk (simulator)")
     ap.add_argument("--out", default="experiments/results/bench_gpu_kernel.json")
     args = ap.parse_args()
@@ -191,14 +202,24 @@ def main():
         [jnp.sum(p.mask, axis=1, dtype=jnp.int32) for p in pxs]
     )
 
-    def kernel(rows, iters=spec_solver.iters, q_global=None, max_registers=None):
+    def kernel(rows, iters=spec_solver.iters, **variant):
         return [
-            ck.solve_rows(
-                r, n, prior, cfg.ridge, spec_solver.tol, iters, q_global=q_global,
-                max_registers=max_registers,
-            )  # fmt: skip
+            ck.solve_rows(r, n, prior, cfg.ridge, spec_solver.tol, iters, **variant)
             for r, n in zip(rows, counts, strict=True)
         ]
+
+    variants = {v: ck.variant(v) for v in filter(None, args.variants.split(","))}
+    if args.save_rows:  # one chunk's rows for profile_gpu_kernel.py (no JAX there)
+        i, n = (int(v) for v in args.save_rows_chunk.split(":"))
+        r = rows_of(pxs[i])
+        np.savez(
+            args.save_rows, events=np.asarray(r.events[:n]),
+            drift=np.asarray(r.drift[:n]), spec_weight=np.asarray(r.spec_weight[:n]),
+            counts=np.asarray(counts[i][:n]), prior=np.asarray(prior, np.float32),
+            ridge=float(cfg.ridge), tol=float(spec_solver.tol),
+            iters=int(spec_solver.iters),
+        )  # fmt: skip
+        print("saved", args.save_rows, "chunk", i, "pixels", n, flush=True)
 
     def host(a):
         return a.copy_to_host() if hasattr(a, "copy_to_host") else np.asarray(a)
@@ -214,17 +235,14 @@ def main():
     _, t_kern0, _ = median_time(lambda: kernel(rows, 0), args.repeats)
     report["kernel_resources"] = ck.resources(m)
     print("kernel resources", report["kernel_resources"], flush=True)
-    # Variants (`--variants`, each `Q_PLACE:REGS`: Q in shared memory or a global
-    # scratch, a register cap or none): time, resources, whether the answers are
-    # the same.
+    # Variants (`--variants`, each `PLACE:REGS[:pf|nopf]`: Q in shared memory or a
+    # global scratch, a register cap or none, the rows read ahead or not): time,
+    # resources, whether the answers are the same.
     report["variants"] = {}
-    for var in filter(None, args.variants.split(",")):
-        place, regs = var.split(":")
-        qg, cap = place == "global", (int(regs) if regs != "none" else None)
+    for var, kw in variants.items():
         try:
             ko, t_v, times_v = median_time(
-                lambda qg=qg, cap=cap: kernel(rows, q_global=qg, max_registers=cap),
-                args.repeats,
+                lambda kw=kw: kernel(rows, **kw), args.repeats
             )  # fmt: skip
         except Exception as err:
             report["variants"][var] = {"error": repr(err)[:300]}
@@ -236,7 +254,7 @@ def main():
         )
         report["variants"][var] = {
             "s": t_v, "times": times_v, "same_answers": same,
-            **ck.resources(m, qg, cap),
+            **ck.resources(m, **kw),
         }  # fmt: skip
         print("variant", var, report["variants"][var], flush=True)
     report.update(

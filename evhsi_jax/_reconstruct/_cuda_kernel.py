@@ -8,9 +8,10 @@ Cholesky runs at ~1 TFLOP/s on an H100 (README, Performance, "One GPU"). Here on
 thread block (one warp) holds one pixel's system in shared memory from the first row
 to the answer:
 
-1. **Q from the rows' spans.** The rows are read four at a time; each row's nonzero
-   span [lo, hi) is found (a warp vote) and only the union of the four spans'
-   triangles of Q is updated (the band is ~18 channels of M; the rows outside their
+1. **Q from the rows' spans.** The rows are read four at a time (each thread's
+   values into registers, then into shared memory); each row's nonzero span
+   [lo, hi) is found (a warp vote), and each thread adds the four rows to its rows
+   i of Q from the first column of the rows that reach i (the rows outside their
    span are exact zeros, so the sums are those of the dense product, in another
    order). Q's envelope (first nonzero column of each row) is kept as in the CPU's
    fused kernel (:mod:`._fused_jit`).
@@ -18,7 +19,17 @@ to the answer:
 3. **Envelope LDLᵀ and the primal active-set method** of
    :func:`._fused_jit._box_qp` (the same steps as
    :func:`._solvers.active_set_batch`): right-looking, the update of step k limited
-   to the rows whose envelope reaches column k, one barrier per step.
+   to the rows whose envelope reaches column k, one barrier per step; column k is
+   kept contiguous in a small buffer, so the update's inner loop steps both of its
+   operands by one.
+
+Q is then kept in a global scratch array (`Q_GLOBAL`) and the factor takes its
+place in shared memory: one triangle per block instead of two, 15 blocks per
+multiprocessor instead of 9 (Q is read again only by the active-set steps and the
+final gradient). The hot loops index in 32 bits (`_u`, `_tri`): numba's integers are
+64-bit, and a profile of the first kernel (Nsight Compute, H100) found it
+instruction-bound, much of its ~134k instructions per pixel 64-bit index
+arithmetic (README, Performance, "One GPU").
 
 Arithmetic is float32, as the JAX path's (its accuracy against a float64 solve is
 measured by `experiments/bench_gpu_kernel.py`). The warp votes and shuffles have
@@ -29,6 +40,7 @@ kernel as it is on a CPU (`NUMBA_ENABLE_CUDASIM=1`; the tests do, on a few pixel
 from __future__ import annotations
 
 import functools
+import os
 
 import numpy as np
 
@@ -43,34 +55,58 @@ from numba import cuda, float32, int32  # noqa: E402
 THREADS = 32
 #: Threads per pixel under the simulator (its barriers are slow; any number ≥ RB).
 SIM_THREADS = 4
-#: Q in a global scratch array after its assembly (one shared triangle per pixel).
-Q_GLOBAL = False
+#: Q in a global scratch array after its assembly (one shared triangle per pixel:
+#: ~15 kB of shared memory per block instead of ~25, so 15 resident blocks per
+#: multiprocessor instead of 9; on the H100 0.152 s against 0.218 s for the
+#: 1280×720 sweep, README "One GPU").
+Q_GLOBAL = True
 #: Cap on registers per thread (None: the compiler's choice).
 MAX_REGISTERS = None
+#: The next pass's rows read while the current one is added (see `make_kernel`;
+#: on the H100 no faster: 0.236 s against 0.230 s, README "One GPU").
+PREFETCH = False
+#: Source lines in the compiled code, for a profiler (`EVHSI_CUDA_LINEINFO=1`).
+LINEINFO = os.environ.get("EVHSI_CUDA_LINEINFO", "") not in ("", "0")
 #: Rows added to Q per pass (per barrier; the accumulation is written out for 4).
 RB = 4
 
 
 def _u(i):
-    """An index as unsigned 32-bit: numba then drops the negative-index wraparound."""
+    """An index as unsigned 32-bit: numba then drops the negative-index wraparound,
+    and LLVM narrows the arithmetic whose result is cast so to 32 bits (numba's
+    integers are 64-bit: each addition two instructions, and more for the
+    wraparound)."""
     return np.uint32(i)
+
+
+def _tri(i):
+    """i (i + 1) / 2, the start of row i of a packed lower triangle, in 32 bits."""
+    return np.uint32((np.uint32(i) * np.uint32(i + 1)) >> np.uint32(1))
 
 
 @functools.cache
 def make_kernel(m: int, nt: int = THREADS, q_global: bool = False,
-                max_registers: int | None = None):  # fmt: skip
+                max_registers: int | None = None, prefetch: bool = False,
+                lineinfo: bool = False):  # fmt: skip
     """The kernel for M = `m` channels and `nt` threads per pixel (shared-memory sizes
     and loop strides are compile-time). On a GPU `nt` must be 32 (one warp: the
     reductions are warp shuffles); the simulator takes any `nt` ≥ RB. `q_global`:
     Q kept in a global scratch array after its assembly (see the kernel).
     `max_registers`: a cap on registers per thread (more blocks per multiprocessor
-    where registers limit them; spills go to local memory)."""
+    where registers limit them; spills go to local memory). `prefetch`: the next
+    pass's rows are read from global memory while the current pass is added (else
+    each pass waits for its own reads). `lineinfo`: source lines in the code, for a
+    profiler."""
     nl = m * (m + 1) // 2
     nq = 1 if q_global else nl
     m1 = m + 1  # shapes of shared arrays: constants of the closure, not expressions
     nspan = 2 * RB
+    nv = -(-m1 // nt)  # row values per thread
+    nrow = RB * m1
+    m2 = 2 * m
     sim = simulated()
     u = cuda.jit(device=True, inline=True)(_u)
+    tri = cuda.jit(device=True, inline=True)(_tri)
 
     # Reductions over the block's threads: warp shuffles on a GPU; through shared
     # memory in the simulator (it has no shuffles).
@@ -114,7 +150,7 @@ def make_kernel(m: int, nt: int = THREADS, q_global: bool = False,
             lo = m
             hi = 0
             for c in range(t, m, nt):
-                if rows[rr, c] != 0.0:
+                if rows[rr * m1 + c] != 0.0:
                     lo = min(lo, c)
                     hi = c + 1
             return red(int32(lo), t, ibuf, 0), red(int32(hi), t, ibuf, 1)
@@ -127,24 +163,47 @@ def make_kernel(m: int, nt: int = THREADS, q_global: bool = False,
             hi = 0
             for c0 in range(0, m, 32):  # one vote per 32 channels
                 c = c0 + t
-                nz = c < m and rows[rr, c] != 0.0
+                nz = c < m and rows[rr * m1 + c] != 0.0
                 mask = cuda.ballot_sync(0xFFFFFFFF, nz)
                 if mask != 0:
                     lo = min(lo, c0 + cuda.ffs(mask) - 1)
                     hi = max(hi, c0 + 32 - cuda.clz(mask))
             return lo, hi
 
+    @cuda.jit(device=True, inline=True)
+    def fetch(buf, ev, ev_w, drift, b, r0, n_ev, n_rows, use_w, t):
+        """buf[rr, kk] ← row r0 + rr at channel t + kk·nt: event rows times their
+        weights, then the drift rows, zero past the last row."""
+        for rr in range(RB):
+            r = r0 + rr
+            w = float32(1.0)
+            if r < n_ev and use_w != 0:
+                w = ev_w[b, r]
+            for kk in range(nv):
+                c = t + kk * nt
+                v = float32(0.0)
+                if c < m1:
+                    if r < n_ev:
+                        v = ev[b, r, c] * w
+                    elif r < n_rows:
+                        v = drift[b, r - n_ev, c]
+                buf[rr, kk] = v
+
     @cuda.jit(device=True)
-    def factor(qs, lf, invd, free, reach, iflag, t):
+    def factor(qs, lf, col, invd, free, reach, iflag, t, init):
         """lf ← the LDLᵀ factor of Q restricted to the free variables (identity on
         the fixed ones), right-looking, in place over the envelope: column k of lf
         keeps the trailing matrix's column at step k (c), so that
         L[i, k] = c_i / c_k and D_k = c_k; invd[k] = 1 / c_k. One barrier per
         step: every thread reads the column k the last step finished and updates
-        its own rows i > k. iflag[0] = 1 when a pivot is not > 0."""
-        for i in range(m):
+        its own rows i > k. Column k is also kept contiguous in `col` (two
+        buffers of M, by the parity of k), written by the step before from the
+        rows it updated: the update's inner loop then steps both operands by
+        one. iflag[0] = 1 when a pivot is not > 0. `init`: lf ← Q first (else lf
+        already holds Q and every variable is free)."""
+        for i in range(m if init else 0):
             fi = free[i]
-            oi = i * (i + 1) // 2
+            oi = tri(i)
             for j in range(t, i + 1, nt):
                 v = float32(0.0)
                 if fi != 0 and free[j] != 0:
@@ -153,10 +212,14 @@ def make_kernel(m: int, nt: int = THREADS, q_global: bool = False,
                     v = float32(1.0)
                 lf[u(oi + j)] = v
         cuda.syncthreads()
+        i = u(1 + t)
+        while i < reach[0]:  # column 0
+            col[i] = lf[tri(i)]
+            i = u(i + nt)
+        cuda.syncthreads()
         bad = 0
         for k in range(m):
-            ok = k * (k + 1) // 2
-            dk = lf[u(ok + k)]
+            dk = lf[u(tri(k) + k)]
             if not dk > 0.0:
                 bad = 1
                 break
@@ -164,39 +227,53 @@ def make_kernel(m: int, nt: int = THREADS, q_global: bool = False,
             if t == 0:
                 invd[k] = ik
             rk = reach[k]
-            o1 = (k + 1) * (k + 2) // 2 + k  # (k + 1, k)
-            for i in range(k + 1 + t, rk, nt):
-                oi = i * (i + 1) // 2
-                cik = lf[u(oi + k)]
+            cb = u((k & 1) * m)  # column k: col[cb + j]; column k + 1: col[nb + i]
+            nb = u(m - (k & 1) * m)
+            i = u(k + 1 + t)  # (the step's loops in 32 bits: while, not range)
+            while i < rk:
+                p = u(tri(i) + k + 1)  # lf[i, k + 1]
+                cik = col[u(cb + i)]
                 if cik != 0.0:
+                    # lf[i, j] -= f lf[j, k] for k < j <= i; the updated
+                    # lf[i, k + 1] is the next step's column.
                     f = cik * ik
-                    # lf[i, j] -= f lf[j, k] for k < j <= i, four entries per
-                    # iteration with their loads first (row i and column k are
-                    # apart in memory: the stores cannot feed the next loads).
-                    j = k + 1
-                    ojk = o1
-                    while j + 3 <= i:
-                        o_b = ojk + j + 1
-                        o_c = o_b + j + 2
-                        o_d = o_c + j + 3
-                        a0 = lf[u(oi + j)]
-                        a1 = lf[u(oi + j + 1)]
-                        a2 = lf[u(oi + j + 2)]
-                        a3 = lf[u(oi + j + 3)]
-                        c0 = lf[u(ojk)]
-                        c1 = lf[u(o_b)]
-                        c2 = lf[u(o_c)]
-                        c3 = lf[u(o_d)]
-                        lf[u(oi + j)] = a0 - f * c0
-                        lf[u(oi + j + 1)] = a1 - f * c1
-                        lf[u(oi + j + 2)] = a2 - f * c2
-                        lf[u(oi + j + 3)] = a3 - f * c3
-                        ojk = o_d + j + 4
-                        j += 4
-                    while j <= i:
-                        lf[u(oi + j)] -= f * lf[u(ojk)]
-                        ojk += j + 1
-                        j += 1
+                    q = u(cb + k + 1)
+                    v = lf[p] - f * col[q]
+                    lf[p] = v
+                    col[u(nb + i)] = v
+                    p = u(p + 1)
+                    q = u(q + 1)
+                    n = u(i - k - 1)
+                    while n >= 4:  # four entries per iteration, loads first
+                        a0 = lf[p]
+                        a1 = lf[p + 1]
+                        a2 = lf[p + 2]
+                        a3 = lf[p + 3]
+                        c0 = col[q]
+                        c1 = col[q + 1]
+                        c2 = col[q + 2]
+                        c3 = col[q + 3]
+                        lf[p] = a0 - f * c0
+                        lf[p + 1] = a1 - f * c1
+                        lf[p + 2] = a2 - f * c2
+                        lf[p + 3] = a3 - f * c3
+                        p = u(p + 4)
+                        q = u(q + 4)
+                        n = u(n - 4)
+                    while n > 0:
+                        lf[p] -= f * col[q]
+                        p = u(p + 1)
+                        q = u(q + 1)
+                        n = u(n - 1)
+                else:
+                    col[u(nb + i)] = lf[p]
+                i = u(i + nt)
+            # Rows that column k + 1 reaches and column k did not: their entries.
+            i = u(max(rk, k + 2) + t)
+            r1 = reach[min(k + 1, m - 1)]
+            while i < r1:
+                col[u(nb + i)] = lf[u(tri(i) + k + 1)]
+                i = u(i + nt)
             cuda.syncthreads()
         if t == 0:
             iflag[0] = bad
@@ -212,8 +289,11 @@ def make_kernel(m: int, nt: int = THREADS, q_global: bool = False,
         for k in range(m):
             zk = out[k] * invd[k]
             if zk != 0.0:
-                for i in range(k + 1 + t, reach[k], nt):
-                    out[i] -= lf[u(i * (i + 1) // 2 + k)] * zk
+                i = u(k + 1 + t)
+                rk = reach[k]
+                while i < rk:
+                    out[i] -= lf[u(tri(i) + k)] * zk
+                    i = u(i + nt)
             cuda.syncthreads()
         for i in range(t, m, nt):
             out[i] *= invd[i]
@@ -221,9 +301,11 @@ def make_kernel(m: int, nt: int = THREADS, q_global: bool = False,
         for k in range(m - 1, -1, -1):
             xk = out[k]
             if xk != 0.0:
-                ok = k * (k + 1) // 2
-                for j in range(first[k] + t, k, nt):
+                ok = tri(k)
+                j = u(first[k] + t)
+                while j < k:
                     out[j] -= lf[u(ok + j)] * invd[j] * xk
+                    j = u(j + nt)
             cuda.syncthreads()
         for i in range(t, m, nt):
             if free[i] == 0:
@@ -235,10 +317,10 @@ def make_kernel(m: int, nt: int = THREADS, q_global: bool = False,
         """g = Q x + q (Q symmetric, its lower triangle inside the envelope)."""
         for i in range(t, m, nt):
             s = qv[i]
-            oi = i * (i + 1) // 2
+            oi = tri(i)
             for j in range(first[i], i + 1):
                 s += qs[u(oi + j)] * x[j]
-            oj = (i + 1) * (i + 2) // 2 + i  # (i + 1, i)
+            oj = tri(i + 1) + i  # (i + 1, i)
             for j in range(i + 1, reach[i]):
                 s += qs[u(oj)] * x[j]
                 oj += j + 1
@@ -246,6 +328,8 @@ def make_kernel(m: int, nt: int = THREADS, q_global: bool = False,
         cuda.syncthreads()
 
     opts = {} if sim or max_registers is None else {"max_registers": max_registers}
+    if lineinfo and not sim:
+        opts["lineinfo"] = True
 
     @cuda.jit(**opts)
     def kernel(
@@ -274,9 +358,10 @@ def make_kernel(m: int, nt: int = THREADS, q_global: bool = False,
         else:
             acc = qs
             qsrc = qs
-        rows = cuda.shared.array((RB, m1), float32)
+        rows = cuda.shared.array(nrow, float32)  # (RB, M + 1), row-major
         qv = cuda.shared.array(m, float32)
         invd = cuda.shared.array(m, float32)
+        col = cuda.shared.array(m2, float32)  # the factor's column k
         x = cuda.shared.array(m, float32)
         p = cuda.shared.array(m, float32)
         g = cuda.shared.array(m, float32)
@@ -295,24 +380,26 @@ def make_kernel(m: int, nt: int = THREADS, q_global: bool = False,
             first[i] = i
         # 1. Q += Σ r rᵀ, q += Σ r c over the rows, RB rows per pass: the pass's rows
         # (dense, zero outside their spans) go to shared memory with their spans,
-        # then thread t adds them to the columns j ≡ t (mod nt) of Q over the
-        # pass's union of spans, one read-modify-write of Q per entry and pass.
+        # then thread t adds them to the rows i ≡ t (mod nt) of Q (below).
         n_ev = ev_n[b]
         n_rows = n_ev + drift.shape[1]
+        # Thread t's values of a pass's rows (channels t, t + nt, ...), in registers:
+        # with `prefetch` the next pass's are read before this pass is added, so
+        # that the global reads' latency hides behind the arithmetic.
+        buf = cuda.local.array((RB, nv), float32)
+        if prefetch:
+            fetch(buf, ev, ev_w, drift, b, 0, n_ev, n_rows, use_w, t)
         for r0 in range(0, n_rows, RB):
+            if not prefetch:
+                fetch(buf, ev, ev_w, drift, b, r0, n_ev, n_rows, use_w, t)
             for rr in range(RB):
-                r = r0 + rr
-                w = float32(1.0)
-                if r < n_ev and use_w != 0:
-                    w = ev_w[b, r]
-                for c in range(t, m1, nt):
-                    v = float32(0.0)
-                    if r < n_ev:
-                        v = ev[b, r, c] * w
-                    elif r < n_rows:
-                        v = drift[b, r - n_ev, c]
-                    rows[rr, c] = v
+                for kk in range(nv):
+                    c = t + kk * nt
+                    if c < m1:
+                        rows[rr * m1 + c] = buf[rr, kk]
             cuda.syncthreads()
+            if prefetch:
+                fetch(buf, ev, ev_w, drift, b, r0 + RB, n_ev, n_rows, use_w, t)
             for rr in range(RB):
                 lo, hi = span_of(rows, rr, t, ibuf)
                 if t == 0:
@@ -325,47 +412,61 @@ def make_kernel(m: int, nt: int = THREADS, q_global: bool = False,
                 if span[2 * rr + 1] > span[2 * rr]:
                     lo_all = min(lo_all, span[2 * rr])
                     hi_all = max(hi_all, span[2 * rr + 1])
-            for j in range(lo_all + t, hi_all, nt):
-                r0j = rows[0, j]
-                r1j = rows[1, j]
-                r2j = rows[2, j]
-                r3j = rows[3, j]
-                o = j * (j + 1) // 2 + j
-                i = j
-                while i < hi_all:  # entries (i, j), (i + 1, j): loads first
-                    i1 = min(i + 1, hi_all - 1)
-                    o1 = o + i + 1
-                    s0 = (rows[0, u(i)] * r0j + rows[1, u(i)] * r1j) + (
-                        rows[2, u(i)] * r2j + rows[3, u(i)] * r3j
-                    )
-                    s1 = (rows[0, u(i1)] * r0j + rows[1, u(i1)] * r1j) + (
-                        rows[2, u(i1)] * r2j + rows[3, u(i1)] * r3j
-                    )
-                    q0 = acc[u(o)]
-                    if i + 1 < hi_all:
-                        q1 = acc[u(o1)]
-                        acc[u(o)] = q0 + s0
-                        acc[u(o1)] = q1 + s1
-                    else:
-                        acc[u(o)] = q0 + s0
-                    o = o1 + i + 2
-                    i += 2
-                qv[j] += (rows[0, m] * r0j + rows[1, m] * r1j) + (
-                    rows[2, m] * r2j + rows[3, m] * r3j
-                )
+            # Thread t adds the pass's rows to the rows i ≡ t (mod nt) of Q, from the
+            # first column of the pass's rows that reach i (their values at i in
+            # registers, the rows' values at j the same for all threads: one
+            # shared read each), one read-modify-write of Q per entry; 32-bit
+            # indices (numba's default 64-bit arithmetic doubles the instructions).
+            for i in range(lo_all + t, hi_all, nt):
+                js = i + 1
                 for rr in range(RB):
-                    if span[2 * rr] <= j < span[2 * rr + 1] and span[2 * rr] < first[j]:
-                        first[j] = span[2 * rr]
+                    if span[2 * rr] <= i < span[2 * rr + 1]:
+                        js = min(js, span[2 * rr])
+                if js > i:
+                    continue
+                if js < first[i]:
+                    first[i] = js
+                ui = u(i)
+                a0 = rows[ui]
+                a1 = rows[ui + m1]
+                a2 = rows[ui + 2 * m1]
+                a3 = rows[ui + 3 * m1]
+                qv[i] += (a0 * rows[m] + a1 * rows[m1 + m]) + (
+                    a2 * rows[2 * m1 + m] + a3 * rows[3 * m1 + m]
+                )
+                o = u(tri(i) + js)
+                q = u(js)
+                n = u(i + 1 - js)
+                while n >= 2:  # two entries per iteration, their loads first
+                    b0 = rows[q]
+                    b1 = rows[q + m1]
+                    b2 = rows[q + 2 * m1]
+                    b3 = rows[q + 3 * m1]
+                    c0 = rows[q + 1]
+                    c1 = rows[q + 1 + m1]
+                    c2 = rows[q + 1 + 2 * m1]
+                    c3 = rows[q + 1 + 3 * m1]
+                    q0 = acc[o]
+                    q1 = acc[o + 1]
+                    acc[o] = q0 + ((a0 * b0 + a1 * b1) + (a2 * b2 + a3 * b3))
+                    acc[o + 1] = q1 + ((a0 * c0 + a1 * c1) + (a2 * c2 + a3 * c3))
+                    o = u(o + 2)
+                    q = u(q + 2)
+                    n = u(n - 2)
+                if n > 0:
+                    acc[o] += (a0 * rows[q] + a1 * rows[q + m1]) + (
+                        a2 * rows[q + 2 * m1] + a3 * rows[q + 3 * m1]
+                    )
             cuda.syncthreads()
         # 2. Priors: spec_w S inside its envelope, the ridge on the diagonal.
         sw = spec_w[b]
         tr = float32(0.0)
         for i in range(t, m, nt):
-            tr += acc[u(i * (i + 1) // 2 + i)]
+            tr += acc[u(tri(i) + i)]
         tr = red(tr, t, fbuf, 2)
         ridge = ridge_rel * ((tr + sw * spec_trace) / float32(m) + float32(1e-30))
         for i in range(t, m, nt):
-            oi = i * (i + 1) // 2
+            oi = tri(i)
             for j in range(spec_first[i], i + 1):
                 acc[u(oi + j)] += sw * spec[i, j]
             acc[u(oi + i)] += ridge
@@ -386,7 +487,7 @@ def make_kernel(m: int, nt: int = THREADS, q_global: bool = False,
                     reach[k] = reach[k - 1]
         qmax = float32(0.0)
         for i in range(t, m, nt):
-            qmax = max(qmax, abs(acc[u(i * (i + 1) // 2 + i)]))
+            qmax = max(qmax, abs(acc[u(tri(i) + i)]))
         qmax = red(qmax, t, fbuf, 1)
         cuda.syncthreads()
         if q_global:
@@ -394,7 +495,8 @@ def make_kernel(m: int, nt: int = THREADS, q_global: bool = False,
                 qsrc[u(e)] = acc[u(e)]
             cuda.syncthreads()
         # 3. The unconstrained minimiser, then the active-set steps (_box_qp).
-        factor(qsrc, lf, invd, free, reach, iflag, t)
+        # (with `q_global`, lf still holds Q: the first factorisation starts there)
+        factor(qsrc, lf, col, invd, free, reach, iflag, t, not q_global)
         steps = 0
         failed = iflag[0] != 0
         if not failed:
@@ -411,7 +513,7 @@ def make_kernel(m: int, nt: int = THREADS, q_global: bool = False,
             cuda.syncthreads()
         while not failed and iflag[1] == 0 and steps < max_iters:
             steps += 1
-            factor(qsrc, lf, invd, free, reach, iflag, t)
+            factor(qsrc, lf, col, invd, free, reach, iflag, t, True)
             if iflag[0] != 0:
                 failed = True
                 break
@@ -507,7 +609,7 @@ def _prior_on_device(spec):
 
 def launch(ev, ev_w, ev_n, drift, spec_w, spec, ridge_rel, tol, max_iters, out_x,
            out_kkt, out_steps, stream=0, threads=THREADS, q_global=Q_GLOBAL,
-           max_registers=MAX_REGISTERS):  # fmt: skip
+           max_registers=MAX_REGISTERS, prefetch=PREFETCH):  # fmt: skip
     """Solve the pixels of one batch: `ev` (B, K, M+1) event rows with weights `ev_w`
     (B, K; None: 1), of which the first `ev_n` (B,) are used (the rest is padding;
     a pixel with none is a padding slot: its answer is 0, KKT NaN, not solved),
@@ -518,7 +620,7 @@ def launch(ev, ev_w, ev_n, drift, spec_w, spec, ridge_rel, tol, max_iters, out_x
     are slow: the tests use a few)."""
     d_spec, d_first, tr = _prior_on_device(spec)
     m = d_spec.shape[0]
-    kern = make_kernel(m, threads, q_global, max_registers)
+    kern = make_kernel(m, threads, q_global, max_registers, prefetch, LINEINFO)
     b = out_x.shape[0]
     if q_global:
         nl = m * (m + 1) // 2
@@ -551,6 +653,21 @@ def _dummy():
     return cuda.to_device(np.ones((1, 1), np.float32))
 
 
+def variant(spec: str) -> dict:
+    """The keyword arguments of :func:`solve_rows` for a kernel variant written
+    `PLACE:REGS[:pf|nopf]` (the benchmarks' `--variants`): Q in `shared` memory or
+    a `global` scratch, a register cap or `none`, the next pass's rows read ahead
+    (`pf`) or not (`nopf`; default `PREFETCH`)."""
+    place, regs, *flags = spec.split(":")
+    if place not in ("shared", "global") or not (regs == "none" or regs.isdigit()):
+        raise ValueError(f"kernel variant {spec!r}: PLACE:REGS[:pf|nopf]")
+    return {
+        "q_global": place == "global",
+        "max_registers": int(regs) if regs != "none" else None,
+        "prefetch": "pf" in flags or (PREFETCH and "nopf" not in flags),
+    }
+
+
 def simulated() -> bool:
     """True when numba's CUDA target is its CPU simulator (`NUMBA_ENABLE_CUDASIM=1`)."""
     from numba import config
@@ -572,7 +689,7 @@ def as_cuda(a):
 
 
 def solve_rows(rows, ev_n, spec, ridge_rel, tol, max_iters, ev_w=None,
-               q_global=None, max_registers=None):  # fmt: skip
+               q_global=None, max_registers=None, prefetch=None):  # fmt: skip
     """Box-QP answers of a batch of pixels from their rows (:class:`._problem.
     PixelRows` with a leading batch axis, float32, on the GPU): `(x, kkt, steps)` as
     numba device arrays (host arrays under the simulator). The JAX arrays must be
@@ -598,6 +715,7 @@ def solve_rows(rows, ev_n, spec, ridge_rel, tol, max_iters, ev_w=None,
         out_steps, threads=SIM_THREADS if simulated() else THREADS,
         q_global=Q_GLOBAL if q_global is None else q_global,
         max_registers=MAX_REGISTERS if max_registers is None else max_registers,
+        prefetch=PREFETCH if prefetch is None else prefetch,
     )  # fmt: skip
     if not simulated():
         cuda.synchronize()
@@ -642,10 +760,11 @@ def why_not(spec, cfg, dtype, mesh) -> str | None:
     return None
 
 
-def resources(m: int, q_global: bool = False, max_registers: int | None = None):
+def resources(m: int, q_global: bool = False, max_registers: int | None = None,
+              prefetch: bool = PREFETCH):  # fmt: skip
     """Registers and local memory per thread, shared memory per block of the compiled
     kernel (after a launch compiled it; empty under the simulator)."""
-    kern = make_kernel(m, THREADS, q_global, max_registers)
+    kern = make_kernel(m, THREADS, q_global, max_registers, prefetch, LINEINFO)
     out = {}
     for key in ("regs_per_thread", "local_mem_per_thread", "shared_mem_per_block"):
         try:

@@ -45,7 +45,8 @@ out_x = np.zeros((b, m), np.float32)
 out_kkt = np.zeros(b, np.float32)
 out_steps = np.zeros(b, np.int32)
 ck.launch(ev, ev_w, ev_n, drift, spec_w, spec, ridge, tol, iters, out_x, out_kkt,
-          out_steps, threads=int(sys.argv[2]), q_global=sys.argv[3] == "1")
+          out_steps, threads=int(sys.argv[2]), q_global=sys.argv[3] == "1",
+          prefetch=sys.argv[4] == "1")
 ref = np.zeros((b, m))
 for p in range(b):
     r = ev[p, : ev_n[p]].astype(np.float64) * ev_w[p, : ev_n[p], None]
@@ -65,14 +66,15 @@ print(json.dumps({"x": out_x.tolist(), "kkt": out_kkt.tolist(),
 """
 
 
-@pytest.mark.parametrize("q_global", ["0", "1"])
-def test_kernel_matches_a_float64_box_qp(q_global):
+@pytest.mark.parametrize(("q_global", "prefetch"), [("0", "1"), ("1", "0")])
+def test_kernel_matches_a_float64_box_qp(q_global, prefetch):
     # Four threads per pixel (the GPU runs 32): the loops' strides then wrap around
-    # M, and the simulator's barriers cost less (~2 s per pixel).
+    # M, and the simulator's barriers cost less (~2 s per pixel). Both places of Q,
+    # and the rows read ahead of their pass or in it.
     env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1")
     res = subprocess.run(
-        [sys.executable, "-c", SCRIPT, "0", "4", q_global], env=env, capture_output=True,
-        text=True, timeout=600,
+        [sys.executable, "-c", SCRIPT, "0", "4", q_global, prefetch], env=env,
+        capture_output=True, text=True, timeout=600,
     )  # fmt: skip
     assert res.returncode == 0, res.stderr[-3000:]
     out = json.loads(res.stdout.strip().splitlines()[-1])
