@@ -658,8 +658,12 @@ def variant(spec: str) -> dict:
     `PLACE:REGS[:pf|nopf]` (the benchmarks' `--variants`): Q in `shared` memory or
     a `global` scratch, a register cap or `none`, the next pass's rows read ahead
     (`pf`) or not (`nopf`; default `PREFETCH`)."""
-    place, regs, *flags = spec.split(":")
-    if place not in ("shared", "global") or not (regs == "none" or regs.isdigit()):
+    parts = spec.split(":")
+    place, regs, flags = parts[0], parts[1] if len(parts) > 1 else "", parts[2:]
+    if (
+        place not in ("shared", "global") or not (regs == "none" or regs.isdigit())
+        or flags not in ([], ["pf"], ["nopf"])
+    ):  # fmt: skip
         raise ValueError(f"kernel variant {spec!r}: PLACE:REGS[:pf|nopf]")
     return {
         "q_global": place == "global",
@@ -760,11 +764,16 @@ def why_not(spec, cfg, dtype, mesh) -> str | None:
     return None
 
 
-def resources(m: int, q_global: bool = False, max_registers: int | None = None,
-              prefetch: bool = PREFETCH):  # fmt: skip
+def resources(m: int, q_global: bool | None = None, max_registers: int | None = None,
+              prefetch: bool | None = None):  # fmt: skip
     """Registers and local memory per thread, shared memory per block of the compiled
-    kernel (after a launch compiled it; empty under the simulator)."""
-    kern = make_kernel(m, THREADS, q_global, max_registers, prefetch, LINEINFO)
+    kernel (after a launch compiled it; empty under the simulator); None: the
+    module's defaults (`Q_GLOBAL`, `MAX_REGISTERS`, `PREFETCH`), as `solve_rows`."""
+    kern = make_kernel(
+        m, THREADS, Q_GLOBAL if q_global is None else q_global,
+        MAX_REGISTERS if max_registers is None else max_registers,
+        PREFETCH if prefetch is None else prefetch, LINEINFO,
+    )  # fmt: skip
     out = {}
     for key in ("regs_per_thread", "local_mem_per_thread", "shared_mem_per_block"):
         try:

@@ -135,3 +135,20 @@ def test_reconstruct_backend_cuda_equals_jax_realistic():
     out = _pipeline("realistic")
     assert np.all(out["solved"])
     assert np.max(out["sam"]) < 0.05
+
+
+def test_kernel_variant_strings():
+    """The benchmarks' `--variants` (`PLACE:REGS[:pf|nopf]`) as keyword arguments of
+    `solve_rows`; anything else is refused."""
+    from evhsi_jax._reconstruct import _cuda_kernel as ck
+
+    assert ck.variant("global:none") == {
+        "q_global": True, "max_registers": None, "prefetch": ck.PREFETCH,
+    }  # fmt: skip
+    assert ck.variant("shared:64:pf") == {
+        "q_global": False, "max_registers": 64, "prefetch": True,
+    }  # fmt: skip
+    assert ck.variant("shared:none:nopf")["prefetch"] is False
+    for bad in ("gpu:none", "shared:many", "shared", "global:none:fast"):
+        with pytest.raises(ValueError, match="PLACE:REGS"):
+            ck.variant(bad)
