@@ -12,10 +12,11 @@ median of `--repeats` warm runs in one process (inputs already on the device):
   active set: the device work of the README's one-GPU table);
 - `rows_s`: the rows alone (`pixel_system(..., return_rows=True)`, vmapped, jitted);
 - `kernel_s`: the CUDA kernel on those rows (Gram + priors + box QP), its registers
-  and memory (`kernel_resources`), and `variants` (`--variants`): Q in a global
-  scratch instead of shared memory (`_cuda_kernel.Q_GLOBAL`), register caps, the
-  next pass's rows read ahead (`pf`, `_cuda_kernel.PREFETCH`) — each one's time,
-  resources and whether its answers are the same;
+  and memory (`kernel_resources`), and `variants` (`--variants`): Q kept in shared
+  memory or in a global scratch (`_cuda_kernel.Q_GLOBAL`, the default since the
+  session of 2026-11-26, seventh), register caps, the next pass's rows read ahead
+  (`pf`, `_cuda_kernel.PREFETCH`) — each one's time, resources and whether its
+  answers are the same as the default kernel's;
 
 and the accuracy of both answers against a float64 solve of the same float32 rows
 (`--check` pixels drawn at random; `_fused_jit._box_qp` in float64 on the host):
@@ -24,7 +25,7 @@ same run's float32 matmul GFLOP/s (default precision) is reported beside them.
 
     python experiments/bench_gpu_kernel.py [--size 720x1280] [--repeats 5]
         [--check 20000] [--out experiments/results/bench_gpu_kernel.json]
-        [--variants global:none,shared:none:pf] [--save-rows rows.npz]
+        [--variants shared:none,shared:none:pf] [--save-rows rows.npz]
 
 `--save-rows NPZ` also writes one chunk's rows, the input of
 `profile_gpu_kernel.py` (a profiler attached to a process without JAX).
@@ -124,7 +125,7 @@ def main():
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--check", type=int, default=20000)
     ap.add_argument(
-        "--variants", default="global:none,shared:none:pf,shared:64",
+        "--variants", default="shared:none,shared:none:pf,shared:64",
         help="kernel variants to time, PLACE:REGS[:pf|nopf] (shared|global, a "
         "register cap or none; pf / nopf: the next pass's rows read ahead or not)",
     )  # fmt: skip

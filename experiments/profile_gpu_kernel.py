@@ -7,7 +7,7 @@ once warm and once between `cuda.profile_start()` and `cuda.profile_stop()`:
     python experiments/bench_gpu_kernel.py --save-rows /tmp/rows.npz ...
     EVHSI_CUDA_LINEINFO=1 ncu --profile-from-start off --set full -o kern \\
         python experiments/profile_gpu_kernel.py /tmp/rows.npz \\
-        [--variants global:none,shared:none:pf]
+        [--variants shared:none,shared:none:pf]
 
 Variants as `bench_gpu_kernel.py --variants` (PLACE:REGS[:pf|nopf]); the default
 kernel is launched first. Also prints each launch's time (wall clock around the
@@ -39,7 +39,7 @@ def main():
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("rows", help="an .npz of bench_gpu_kernel.py --save-rows")
-    ap.add_argument("--variants", default="global:none")
+    ap.add_argument("--variants", default="shared:none")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument(
         "--compare", default="", metavar="PY",
