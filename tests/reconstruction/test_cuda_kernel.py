@@ -102,9 +102,10 @@ kw = {} if sys.argv[1] == "ideal" else {"sensor": "realistic"}
 rig = ev.Rig(channels=16, **kw)
 events = ev.simulate(ev.load_scene("colorchecker", (1, 3)), rig, sweeps=1, key=jr.key(1))
 a, info = ev.reconstruct(events, rig, backend="cuda", return_info=True)
-b = ev.reconstruct(events, rig, backend="jax")
+b, info_b = ev.reconstruct(events, rig, backend="jax", return_info=True)
 print(json.dumps({"sam": ev.metrics.sam_map_deg(a, b).tolist(),
-                  "solved": info.solved.tolist(), "kkt": info.kkt.tolist()}))
+                  "solved": info.solved.tolist(), "kkt": info.kkt.tolist(),
+                  "solved_jax": info_b.solved.tolist()}))
 """
 
 
@@ -131,9 +132,14 @@ def test_reconstruct_backend_cuda_equals_jax_ideal():
 @pytest.mark.slow
 def test_reconstruct_backend_cuda_equals_jax_realistic():
     """The same with the realistic preset: the photoreceptor pass (rows relinearised
-    at the kernel's answer) and the robust reweighting (the kernel's row weights)."""
+    at the kernel's answer) and the robust reweighting (the kernel's row weights).
+    Its hot pixels (here the third: its events are dropped, its spectrum filled in)
+    are not solved by either backend."""
     out = _pipeline("realistic")
-    assert np.all(out["solved"])
+    assert out["solved"] == out["solved_jax"]
+    solved = np.array(out["solved"])
+    assert solved.sum() >= 2
+    assert np.all(np.isfinite(np.array(out["kkt"])[solved]))
     assert np.max(out["sam"]) < 0.05
 
 
