@@ -28,10 +28,18 @@ from types import SimpleNamespace
 import numpy as np
 
 # The kernel module alone (the package would import JAX).
-_PATH = Path(__file__).parents[1] / "evhsi_jax" / "_reconstruct" / "_cuda_kernel.py"
-_SPEC = importlib.util.spec_from_file_location("_cuda_kernel", _PATH)
-ck = importlib.util.module_from_spec(_SPEC)
-_SPEC.loader.exec_module(ck)
+KERNEL = Path(__file__).parents[1] / "evhsi_jax" / "_reconstruct" / "_cuda_kernel.py"
+
+
+def load_kernel(path=KERNEL, name="_cuda_kernel"):
+    """A revision of the kernel module (this tree's by default), imported by path."""
+    spec = importlib.util.spec_from_file_location(name, path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+ck = load_kernel()
 
 
 def main():
@@ -59,12 +67,8 @@ def main():
     variants = {"default": {}}
     variants.update({v: ck.variant(v) for v in args.variants.split(",") if v})
 
-    other = None
     if args.compare:
-        spec = importlib.util.spec_from_file_location("_other_kernel", args.compare)
-        other = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(other)
-        variants["compare"] = {"module": other}
+        variants["compare"] = {"module": load_kernel(args.compare, "_other_kernel")}
 
     def run(kw):
         kw = dict(kw)

@@ -8,9 +8,10 @@ Needs numba-cuda and CUDA's compiler libraries (NVVM, ptxas), all from PyPI — 
 virtual environment of its own, e.g.
 `python -m venv /tmp/cu && /tmp/cu/bin/pip install numba 'numba-cuda[cu12]'` —
 then `/tmp/cu/bin/python experiments/ptx_gpu_kernel.py [--variants shared:none,global:none]
-[--cc 9.0] [--m 72] [--out DIR]`. The kernel module is imported by path (the package
-would import JAX). numba asks the current device for its compute capability when it
-types a call of a device function; with no device, the script answers `--cc` for it.
+[--cc 9.0] [--m 72] [--out DIR]`. The kernel module is imported by path, as in
+`profile_gpu_kernel.py` (the package would import JAX). numba asks the current
+device for its compute capability when it types a call of a device function; with
+no device, the script answers `--cc` for it.
 
 Prints, per variant: registers per thread, shared memory per block, spill bytes,
 the PTX instruction count and how many of those are 64-bit integer operations
@@ -25,14 +26,11 @@ registers, 25,120 bytes of shared memory; global:none 96 and 14,608; no spills.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import re
 import shutil
 import subprocess
 import sys
 from pathlib import Path
-
-_PATH = Path(__file__).parents[1] / "evhsi_jax" / "_reconstruct" / "_cuda_kernel.py"
 
 
 def _ptxas() -> str | None:
@@ -68,9 +66,8 @@ def main() -> int:
         compute_capability = cc
 
     dispatcher.get_current_device = lambda: _Device()
-    spec = importlib.util.spec_from_file_location("_cuda_kernel", _PATH)
-    ck = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(ck)
+    from profile_gpu_kernel import ck  # the kernel module alone, by path
+
     f32, i32 = types.float32, types.int32
     a3, a2, a1 = (types.Array(f32, n, "C") for n in (3, 2, 1))
     ai1 = types.Array(i32, 1, "C")

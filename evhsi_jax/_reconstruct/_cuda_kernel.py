@@ -63,7 +63,8 @@ Q_GLOBAL = True
 #: Cap on registers per thread (None: the compiler's choice).
 MAX_REGISTERS = None
 #: The next pass's rows read while the current one is added (see `make_kernel`;
-#: on the H100 no faster: 0.236 s against 0.230 s, README "One GPU").
+#: on the H100 with Q in shared memory 0.198 s against 0.218 s, at 118 registers
+#: instead of 79; not measured with the default, Q_GLOBAL; README "One GPU").
 PREFETCH = False
 #: Source lines in the compiled code, for a profiler (`EVHSI_CUDA_LINEINFO=1`).
 LINEINFO = os.environ.get("EVHSI_CUDA_LINEINFO", "") not in ("", "0")
@@ -351,7 +352,7 @@ def make_kernel(m: int, nt: int = THREADS, q_global: bool = False,
         lf = cuda.shared.array(nl, float32)
         # Q is accumulated in shared memory; with `q_global` in `lf` and kept in the
         # global scratch `qg[b]` from the factorisation on (one shared triangle per
-        # pixel instead of two: twice the pixels per multiprocessor).
+        # pixel instead of two: 15 blocks per multiprocessor instead of 9).
         if q_global:
             acc = lf
             qsrc = qg[b]
