@@ -558,8 +558,8 @@ def reconstruct(
       `"cuda"` (JAX forms each chunk's rows on a CUDA GPU, the kernel of
       :mod:`._cuda_kernel` their Gram matrices and box QPs in the GPU's on-chip
       memory, float32; needs numba's CUDA target, the active-set solver and a
-      float32 rig; as fast as jax for a whole sweep on an H100, so `"auto"` leaves
-      it out: `AUTO_CUDA`) or `"auto"` (default): fused where it applies and the
+      float32 rig; on an H100 only 1.08× jax for a whole sweep, its chunks one
+      after the other, so `"auto"` leaves it out: `AUTO_CUDA`) or `"auto"` (default): fused where it applies and the
       solve would run on a CPU, else JAX. The fused cube
       is the float64 solve of the same events (within 0.01° SAM of the JAX path run
       in float64; float32 JAX and cuda differ from both by their rounding).
@@ -779,9 +779,10 @@ BACKENDS = ("auto", "jax", "fused", "cuda")
 
 
 #: Whether `backend="auto"` picks the CUDA kernel on a CUDA GPU where it applies.
-#: Off: on an H100 it is as fast as the JAX path for a whole sweep (README,
-#: Performance, "One GPU"), and it depends on numba's CUDA target working with the
-#: installed NumPy; `backend="cuda"` asks for it.
+#: Off: on an H100 its device work is 1.65× the JAX path's but a whole sweep only
+#: 1.08× (its chunks run one after the other; README, Performance, "One GPU"), and
+#: it depends on numba's CUDA target working with the installed NumPy;
+#: `backend="cuda"` asks for it.
 AUTO_CUDA = False
 
 
