@@ -559,10 +559,11 @@ def reconstruct(
       :mod:`._cuda_kernel` their Gram matrices and box QPs in the GPU's on-chip
       memory, float32; needs numba's CUDA target, the active-set solver and a
       float32 rig; on an H100 only 1.08× jax for a whole sweep, its chunks one
-      after the other, so `"auto"` leaves it out: `AUTO_CUDA`) or `"auto"` (default): fused where it applies and the
-      solve would run on a CPU, else JAX. The fused cube
-      is the float64 solve of the same events (within 0.01° SAM of the JAX path run
-      in float64; float32 JAX and cuda differ from both by their rounding).
+      after the other, so `"auto"` leaves it out: `AUTO_CUDA`) or `"auto"`
+      (default): fused where it applies and the solve would run on a CPU, else JAX.
+      The fused cube is the float64 solve of the same events (within 0.01° SAM of the
+      JAX path run in float64; float32 JAX and cuda differ from both by their
+      rounding).
     - `threads`: worker threads of the fused backend (default: the usable cores).
     - `mesh`: a `jax.sharding.Mesh` with a `"pixels"` axis
       (:func:`evhsi_jax.sharding.pixel_mesh`): each chunk's pixels are split over its devices,
