@@ -24,7 +24,7 @@ of `--repeats` warm runs in this process after one cold run (compilation):
 
     python experiments/bench_gpu.py [--size 720x1280] [--repeats 3] [--out PATH]
         [--cases ideal,noise] [--batch-variants 65536x65536,262144x262144]
-        [--backends jax,cuda]
+        [--backends jax,cuda] [--whole-only] [--no-float64] [--profile N]
 
 Writes `experiments/results/bench_gpu.json` (or `--out`). On a CPU use a small
 `--size` (the full sensor takes minutes there); the GPU figures in the README were
@@ -34,8 +34,11 @@ measured with the `device` tool on one H100.
 from __future__ import annotations
 
 import argparse
+import cProfile
+import io
 import json
 import platform
+import pstats
 import statistics
 import time
 from pathlib import Path
@@ -141,6 +144,20 @@ def device_parts(events, rig, maps, repeats, chunk=None, sub=None):
     }
 
 
+def profiled(fn, n):
+    """cProfile of one call of `fn`: the `n` costliest functions by their own time and
+    by their time with callees, as text lines (waits for the device show up in the
+    host call that waits)."""
+    prof = cProfile.Profile()
+    prof.runcall(fn)
+    out = {}
+    for key in ("tottime", "cumulative"):
+        buf = io.StringIO()
+        pstats.Stats(prof, stream=buf).sort_stats(key).print_stats(n)
+        out[key] = [ln for ln in buf.getvalue().splitlines() if ln.strip()]
+    return out
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--size", default="720x1280")
@@ -151,6 +168,13 @@ def main():
     ap.add_argument(
         "--backends", default="", help="also time the whole call with these (jax,cuda)"
     )
+    ap.add_argument("--whole-only", action="store_true",
+                    help="time the whole calls only (no parts, no host grouping)")
+    ap.add_argument("--no-float64", action="store_true",
+                    help="leave out the float64 check")
+    ap.add_argument("--profile", type=int, default=0, metavar="N",
+                    help="cProfile one more warm whole call per backend: its N "
+                         "costliest functions (own time, and with callees)")  # fmt: skip
     args = ap.parse_args()
     h, w = ev.forward.parse_size(args.size)
     dev = jax.devices()[0]
@@ -214,11 +238,15 @@ def main():
             "px_per_s": h * w / med,
             "sam_deg": metrics["sam_deg"],
             "psnr_db": metrics["psnr_db"],
-            **device_parts(events, cal, maps, args.repeats),
         }
-        row["device_px_per_s"] = h * w / row["device_assemble_solve_s"]
+        if not args.whole_only:
+            row.update(device_parts(events, cal, maps, args.repeats))
+            row["device_px_per_s"] = h * w / row["device_assemble_solve_s"]
+        if args.profile:
+            row["profile"] = profiled(rec, args.profile)
         report[name] = row
-        print(name, {k: v for k, v in row.items() if "times" not in k}, flush=True)
+        print(name, {k: v for k, v in row.items() if "times" not in k and k != "profile"},
+              flush=True)  # fmt: skip
         for backend in filter(None, args.backends.split(",")):
             # The whole call with another backend (cuda: the CUDA kernel, which
             # auto picks on a CUDA GPU where numba's CUDA target works).
@@ -242,13 +270,20 @@ def main():
                     np.max(ev.metrics.sam_map_deg(cube_b, cube))
                 ),
             }
-            print("  backend", backend, {k: v for k, v in
-                  row["backends"][backend].items() if "times" not in k}, flush=True)  # fmt: skip
+            if args.profile:
+                row["backends"][backend]["profile"] = profiled(
+                    lambda cal=cal, backend=backend: rec(cal, backend), args.profile
+                )  # fmt: skip
+            print("  backend", backend, {k: v for k, v in row["backends"][backend]
+                  .items() if "times" not in k and k != "profile"}, flush=True)  # fmt: skip
             if name == "ideal path":
                 cubes_by_backend[backend] = cube_b
         if name == "ideal path":
             cube32 = cube
-            if pipe.DEVICE_GROUPING == "auto" and jax.default_backend() != "cpu":
+            if (
+                pipe.DEVICE_GROUPING == "auto" and jax.default_backend() != "cpu"
+                and not args.whole_only
+            ):  # fmt: skip
                 pipe.DEVICE_GROUPING = False  # the whole call with the host's grouping
                 cube_h, _, warm_h = timed(rec, args.repeats)
                 pipe.DEVICE_GROUPING = "auto"
@@ -263,7 +298,7 @@ def main():
                 row.setdefault("batch_variants", {})[variant] = part
                 print("  batch", variant, {k: v for k, v in part.items()
                                            if "times" not in k}, flush=True)  # fmt: skip
-    if "ideal path" not in report:
+    if "ideal path" not in report or args.no_float64:
         return _write(report, args.out)
     # float32 against a float64 solve of the same events (whole image).
     jax.config.update("jax_enable_x64", True)

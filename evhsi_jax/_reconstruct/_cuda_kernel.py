@@ -39,6 +39,7 @@ kernel as it is on a CPU (`NUMBA_ENABLE_CUDASIM=1`; the tests do, on a few pixel
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
 
@@ -694,13 +695,16 @@ def as_cuda(a):
 
 
 def solve_rows(rows, ev_n, spec, ridge_rel, tol, max_iters, ev_w=None,
-               q_global=None, max_registers=None, prefetch=None):  # fmt: skip
+               q_global=None, max_registers=None, prefetch=None, wait=True):  # fmt: skip
     """Box-QP answers of a batch of pixels from their rows (:class:`._problem.
     PixelRows` with a leading batch axis, float32, on the GPU): `(x, kkt, steps)` as
     numba device arrays (host arrays under the simulator). The JAX arrays must be
     ready (`jax.block_until_ready`); the kernel runs on numba's default stream and
-    this returns after it finished. `ev_n` (B,) int32: each pixel's event rows (the
-    rest of `rows.events` is padding); `ev_w`: optional weights of the event rows."""
+    this returns after it finished, or (`wait=False`) right after the launch: then
+    the caller keeps the inputs referenced and calls `cuda.synchronize()`
+    (:func:`synchronize`) before anything reads the answers or frees the inputs.
+    `ev_n` (B,) int32: each pixel's event rows (the rest of `rows.events` is
+    padding); `ev_w`: optional weights of the event rows."""
     ev = rows.events
     b = ev.shape[0]
     m = ev.shape[2] - 1
@@ -722,9 +726,23 @@ def solve_rows(rows, ev_n, spec, ridge_rel, tol, max_iters, ev_w=None,
         max_registers=MAX_REGISTERS if max_registers is None else max_registers,
         prefetch=PREFETCH if prefetch is None else prefetch,
     )  # fmt: skip
+    if wait:
+        synchronize()
+    return out_x, out_kkt, out_steps
+
+
+def deferred_frees():
+    """A context in which numba frees no device memory (`cuda.defer_cleanup`: a free
+    would wait for the whole device, JAX's work included); a no-op under the
+    simulator."""
+    return contextlib.nullcontext() if simulated() else cuda.defer_cleanup()
+
+
+def synchronize():
+    """Wait for every kernel launched (numba's CUDA target; nothing under the
+    simulator, whose launches run to their end)."""
     if not simulated():
         cuda.synchronize()
-    return out_x, out_kkt, out_steps
 
 
 def to_jax(a):

@@ -393,6 +393,41 @@ def _solve_chunk_cuda(rig, table, cfg, spec, sub, px, sweeps, noise=None):
     return x, kkt
 
 
+def _solve_chunks_cuda(rig, table, cfg, spec, chunks, sweeps):
+    """The chunks of a reconstruction without noise model through the CUDA kernel,
+    each chunk's rows formed by JAX while the kernel solves the one before:
+    `chunks` yields `(pixel, pixel_device, px)` as `reconstruct` makes them; yields
+    each with its `(x, kkt)` (JAX arrays), in order — :func:`_solve_chunk_cuda`'s
+    answers. The kernel runs on numba's stream, JAX on its own, so the host orders
+    them: it waits for a chunk's rows before launching the kernel on them, and for
+    the kernel before JAX reads its answers; a chunk's rows stay referenced until
+    then (JAX would reuse their memory), and numba frees nothing meanwhile (a free
+    waits for the whole device)."""
+    from . import _cuda_kernel as ck
+
+    m = table.values.shape[1]
+    prior = spectral_prior_matrix(m, cfg.m_start_frac, cfg.spec_kind)
+    pending = None  # (chunk, its answers on numba's side, its rows)
+
+    def answers(chunk, out, inputs):
+        ck.synchronize()
+        del inputs  # (now free to go)
+        return (*chunk, ck.to_jax(out[0]), ck.to_jax(out[1]))
+
+    with ck.deferred_frees():
+        for chunk in chunks:
+            rows, n = _chunk_rows(rig, table, cfg, chunk[2], sweeps)  # (dispatched)
+            if pending is not None:
+                yield answers(*pending)
+            jax.block_until_ready((rows, n))
+            out = ck.solve_rows(
+                rows, n, prior, cfg.ridge, spec.tol, spec.iters, wait=False
+            )  # fmt: skip
+            pending = (chunk, out, (rows, n))
+        if pending is not None:
+            yield answers(*pending)
+
+
 def _solve_chunk_stored(rig, table, cfg, spec, sub, px, sweeps, noise=None):
     """:func:`_solve_chunk` through the stored traced program of its shapes when the
     compilation cache is on (`call_exported`: a second process skips tracing)."""
@@ -681,8 +716,11 @@ def reconstruct(
         else (_check_map(threshold_off_map, h, w, "threshold_off map"))
     )
 
-    cube = np.full((h * w, m), _no_event_answer(rig, m), np.float32)
-    kkt_all = np.full(h * w, np.nan, np.float32)
+    # The host's cube, unless the answers are placed into one on the device (`plan`).
+    cube = kkt_all = None
+    if not plan:
+        cube = np.full((h * w, m), _no_event_answer(rig, m), np.float32)
+        kkt_all = np.full(h * w, np.nan, np.float32)
     bar = tqdm(
         total=int(np.count_nonzero(counts)),
         disable=not progress,
@@ -718,12 +756,21 @@ def reconstruct(
     held = None
     if plan:  # made there, not sent over (a 1280x720 cube is 270 MB)
         held = (
-            jnp.full(cube.shape, _no_event_answer(rig, m), jnp.float32),
-            jnp.full(kkt_all.shape, jnp.nan, jnp.float32),
+            jnp.full((h * w, m), _no_event_answer(rig, m), jnp.float32),
+            jnp.full(h * w, jnp.nan, jnp.float32),
         )
-    for pixel, pix_dev, px in chunks():
+    def solved():  # each chunk with its answers
+        if solve is _solve_chunk_cuda and noise_j is None:  # the next chunk's rows
+            # formed while the kernel solves one
+            yield from _solve_chunks_cuda(rig, table, cfg, spec, chunks(), sweeps)
+            return
+        for pixel, pix_dev, px in chunks():
+            yield pixel, pix_dev, px, *solve(
+                rig, table, cfg, spec, sub, px, sweeps, noise_j
+            )  # fmt: skip
+
+    for pixel, pix_dev, px, x, kkt in solved():
         valid = pixel >= 0
-        x, kkt = solve(rig, table, cfg, spec, sub, px, sweeps, noise_j)
         if held is not None:
             if not bool(_any_failed(x, pix_dev)):
                 held = _place(*held, pix_dev, x, kkt)
@@ -745,20 +792,36 @@ def reconstruct(
             kkt_all[pixel[valid]] = kkt[valid]
         bar.update(int(valid.sum()))
     bar.close()
-    if held is not None:
-        cube, kkt_all = (np.array(a) for a in held)
-    bad = ~np.isfinite(cube)
-    if bad.any():  # never hand out NaN: the no-event answer, flagged (kkt = inf)
-        cube[bad] = _no_event_answer(rig, m)
-        kkt_all[np.any(bad, axis=1)] = np.inf
-    if np.any(np.asarray(rig.channel_gain) != 1.0):  # white-reference correction
-        cube = cube / np.asarray(rig.channel_gain, np.float32)
+    gain = None  # white-reference correction: times 1/gain (a product rounds alike
+    # on every device; XLA's division need not be NumPy's to the last bit)
+    if np.any(np.asarray(rig.channel_gain) != 1.0):
+        gain = (1.0 / np.asarray(rig.channel_gain, np.float64)).astype(np.float32)
+    psf = float(rig.effects.psf_sigma_px)
+    deblurred = (psf > 0) if deblur is None else deblur
+    clipped = False
+    if held is not None:  # finished on the device: one pass there, not four here
+        clipped = not (hot.any() or deblurred)
+        cube, kkt_all = (
+            np.array(a)
+            for a in _finish_on_device(
+                *held, _no_event_answer(rig, m), gain,
+                cfg.max_reflectance if clipped else None,
+            )
+        )  # fmt: skip
+    else:
+        bad = ~np.isfinite(cube)
+        if bad.any():  # never hand out NaN: the no-event answer, flagged (kkt = inf)
+            cube[bad] = _no_event_answer(rig, m)
+            kkt_all[np.any(bad, axis=1)] = np.inf
+        if gain is not None:
+            cube = cube * gain
     if hot.any():  # hot pixels carry no light information: fill from neighbours
         cube = _fill_from_neighbours(cube.reshape(h, w, m), hot, counts.reshape(h, w))
-    psf = float(rig.effects.psf_sigma_px)
-    if (psf > 0) if deblur is None else deblur:
+    if deblurred:
         cube = deblur_cube(cube.reshape(h, w, m), psf)
-    cube = np.clip(cube, 0.0, cfg.max_reflectance).reshape(h, w, m)
+    if not clipped:
+        cube = np.clip(cube, 0.0, cfg.max_reflectance)
+    cube = cube.reshape(h, w, m)
     if not return_info:
         return cube
     info = ReconstructionInfo(
@@ -823,6 +886,24 @@ def _place(cube, kkt_all, pixel, x, kkt):
         cube.at[at].set(x.astype(cube.dtype), mode="drop"),
         kkt_all.at[at].set(kkt.astype(kkt_all.dtype), mode="drop"),
     )
+
+
+@functools.partial(jax.jit, static_argnums=(4,), donate_argnums=(0, 1))
+def _finish_on_device(cube, kkt_all, no_event, gain, clip_max):
+    """What `reconstruct` does to the host's cube after the solves, on the device's
+    cube: non-finite answers replaced by the no-event answer `no_event` and flagged
+    (KKT = inf), multiplied by the inverse white-reference gains `gain` `(M,)`
+    (None: none), clipped
+    to [0, `clip_max`] (None: not here; the host clips after its hot-pixel fill or
+    deblurring). The same values as the host's NumPy passes."""
+    bad = ~jnp.isfinite(cube)
+    cube = jnp.where(bad, jnp.asarray(no_event, cube.dtype), cube)
+    kkt_all = jnp.where(jnp.any(bad, axis=1), jnp.inf, kkt_all)
+    if gain is not None:
+        cube = cube * gain
+    if clip_max is not None:
+        cube = jnp.clip(cube, 0.0, jnp.asarray(clip_max, cube.dtype))
+    return cube, kkt_all
 
 
 #: Where the JAX backend sorts the events by pixel and cuts the padded batches:

@@ -103,9 +103,15 @@ rig = ev.Rig(channels=16, **kw)
 events = ev.simulate(ev.load_scene("colorchecker", (1, 3)), rig, sweeps=1, key=jr.key(1))
 a, info = ev.reconstruct(events, rig, backend="cuda", return_info=True)
 b, info_b = ev.reconstruct(events, rig, backend="jax", return_info=True)
-print(json.dumps({"sam": ev.metrics.sam_map_deg(a, b).tolist(),
-                  "solved": info.solved.tolist(), "kkt": info.kkt.tolist(),
-                  "solved_jax": info_b.solved.tolist()}))
+out = {"sam": ev.metrics.sam_map_deg(a, b).tolist(), "solved": info.solved.tolist(),
+       "kkt": info.kkt.tolist(), "solved_jax": info_b.solved.tolist()}
+if sys.argv[1] == "ideal":  # one pixel per chunk, grouped and placed by the device:
+    # the chunks go through the kernel while the next one's rows are formed
+    from evhsi_jax._reconstruct import _pipeline
+    _pipeline.DEVICE_GROUPING = True
+    c = ev.reconstruct(events, rig, backend="cuda", chunk_pixels=1, sub_batch=1)
+    out["sam_chunked"] = ev.metrics.sam_map_deg(c, a).tolist()
+print(json.dumps(out))
 """
 
 
@@ -127,6 +133,9 @@ def test_reconstruct_backend_cuda_equals_jax_ideal():
     assert np.all(out["solved"])
     assert np.max(out["sam"]) < 0.05
     assert np.all(np.isfinite(out["kkt"]))
+    # Three chunks of one pixel each: every answer in its own pixel (the kernel's
+    # arithmetic is the same per pixel, so only the places could differ)
+    assert np.max(out["sam_chunked"]) < 1e-4
 
 
 @pytest.mark.slow

@@ -152,6 +152,38 @@ def test_device_grouping_gives_the_host_batches(capture, monkeypatch):
     # float32 rounding of the shifted times, through an ill-conditioned float32 solve
     assert ev.metrics.sam_map_deg(cubes[2], cubes[3]).max() < 0.05
     np.testing.assert_allclose(cubes[2], cubes[3], atol=1e-3)
+    # White-reference gains: applied on the device before its clipping, as here.
+    gained = rig.replace_host(channel_gain=np.linspace(0.15, 1.4, rig.channels))
+    per_place = []
+    for where in (False, True):
+        monkeypatch.setattr(_pipeline, "DEVICE_GROUPING", where)
+        per_place.append(ev.reconstruct(events, gained, **kw)[0])
+    np.testing.assert_array_equal(per_place[0], per_place[1])
+    assert per_place[0].max() == np.float32(ev.reconstruction.ProblemConfig().max_reflectance)
+
+
+def test_device_finish_is_the_hosts():
+    # `_finish_on_device` must give what the host's NumPy passes give: non-finite
+    # answers replaced and flagged, the inverse gains applied, the clip.
+    from evhsi_jax._reconstruct._pipeline import _finish_on_device
+
+    rng = np.random.default_rng(1)
+    cube = rng.uniform(-0.5, 2.5, (50, 7)).astype(np.float32)
+    cube[3, 2], cube[9, 0], cube[9, 6], cube[20, 4] = np.nan, np.inf, -np.inf, np.nan
+    kkt = rng.uniform(0, 1e-3, 50).astype(np.float32)
+    gain = rng.uniform(0.5, 1.5, 7).astype(np.float32)
+    for g, clip in ((gain, 1.5), (None, None), (gain, None)):
+        want, want_k = cube.copy(), kkt.copy()
+        bad = ~np.isfinite(want)
+        want[bad] = 0.04
+        want_k[bad.any(axis=1)] = np.inf
+        if g is not None:
+            want = want * g
+        if clip is not None:
+            want = np.clip(want, 0.0, clip)
+        got, got_k = _finish_on_device(jnp.asarray(cube), jnp.asarray(kkt), 0.04, g, clip)
+        np.testing.assert_array_equal(np.asarray(got), want)
+        np.testing.assert_array_equal(np.asarray(got_k), want_k)
 
 
 def test_no_recompilation_on_second_call(capture):
