@@ -284,14 +284,7 @@ class DeviceLists:
 
     def __init__(self, events: EventStream, t_start_us: int):
         w, h = events.width, events.height
-        n = len(events)
-        n_pad = 1 << max(int(n - 1).bit_length(), 10)
-        t_rel = np.empty(n_pad, np.int32)  # (no int64 temporary: `fits` checked)
-        np.subtract(events.t_us, t_start_us, out=t_rel[:n], casting="unsafe")
-        x, y, p = (np.empty(n_pad, a.dtype) for a in (events.x, events.y, events.p))
-        x[:n], y[:n], p[:n] = events.x, events.y, events.p
-        t_rel[n:], x[n:], p[n:] = 0, 0, 0
-        y[n:] = h  # row h: past the last pixel, sorts last
+        x, y, t_rel, p = _padded_for_device(events, t_start_us)
         counts, starts, t_s, s_s = _sort_by_pixel(*jax.device_put((x, y, t_rel, p)), w,
                                                   w * h)  # fmt: skip
         self.counts = np.asarray(counts).astype(np.int64)  # (the host's plan)
@@ -324,6 +317,38 @@ class DeviceLists:
             pixel_device, lead, offsets, thr_on, thr_off, k, self.width,
             np.dtype(dtype).name,
         )  # fmt: skip
+
+
+def _padded_for_device(events: EventStream, t_start_us: int):
+    """`(x, y, t_rel, p)` of :class:`DeviceLists`: the events' columns, rows, int32
+    times from `t_start_us` and polarities, padded to a power of two (at least 1024)
+    with events at row H (past the last pixel: they sort last). From
+    `THREADED_LISTS_MIN` events on, slices are filled on the usable cores (at most
+    8; NumPy's copies release the GIL, and the fresh arrays' pages are then touched
+    by several cores): the same arrays."""
+    n, h = len(events), events.height
+    n_pad = 1 << max(int(n - 1).bit_length(), 10)
+    t_rel = np.empty(n_pad, np.int32)  # (no int64 temporary: `fits` checked)
+    x, y, p = (np.empty(n_pad, a.dtype) for a in (events.x, events.y, events.p))
+
+    def part(i0, i1):
+        np.subtract(events.t_us[i0:i1], t_start_us, out=t_rel[i0:i1], casting="unsafe")
+        x[i0:i1], y[i0:i1], p[i0:i1] = events.x[i0:i1], events.y[i0:i1], events.p[i0:i1]
+
+    def pad(i0, i1):
+        t_rel[i0:i1], x[i0:i1], p[i0:i1], y[i0:i1] = 0, 0, 0, h
+
+    workers = min(shard.usable_cores(), 8)
+    if workers > 1 and n >= THREADED_LISTS_MIN:
+        step = -(-n_pad // (4 * workers))
+        cuts = [(i, min(i + step, n_pad)) for i in range(0, n_pad, step)]
+        with concurrent.futures.ThreadPoolExecutor(workers) as pool:
+            list(pool.map(lambda c: (part(c[0], min(c[1], n)),
+                                     pad(max(c[0], n), c[1])), cuts))  # fmt: skip
+    else:
+        part(0, n)
+        pad(n, n_pad)
+    return x, y, t_rel, p
 
 
 @functools.partial(jax.jit, static_argnums=(4, 5))

@@ -467,3 +467,49 @@ def test_pixel_lists_kernel_matches_the_numpy_reference(capture):
         for a, b in zip(par, ref):
             assert a.dtype == b.dtype
             np.testing.assert_array_equal(a, b)
+
+
+def test_device_lists_padding_threaded_is_serial(monkeypatch):
+    # DeviceLists' host-side arrays, filled in slices on several threads from
+    # THREADED_LISTS_MIN events on: the same arrays as one thread's, padding
+    # included, for a count that is not a multiple of anything.
+    from evhsi_jax._base import shard
+    from evhsi_jax._reconstruct import _pixels
+
+    rng = np.random.default_rng(2)
+    n, w, h = 5003, 40, 30
+    events = ev.io.EventStream(
+        x=rng.integers(0, w, n).astype(np.uint16), y=rng.integers(0, h, n).astype(np.uint16),
+        p=rng.integers(0, 2, n).astype(np.uint8),
+        t_us=np.sort(rng.integers(1000, 90_000, n)).astype(np.int64), width=w, height=h,
+    )  # fmt: skip
+    monkeypatch.setattr(shard, "usable_cores", lambda: 3)
+    monkeypatch.setattr(_pixels, "THREADED_LISTS_MIN", 1 << 30)
+    serial = _pixels._padded_for_device(events, 1000)
+    monkeypatch.setattr(_pixels, "THREADED_LISTS_MIN", 1000)
+    threaded = _pixels._padded_for_device(events, 1000)
+    assert serial[0].size == 8192
+    for a, b in zip(threaded, serial):
+        assert a.dtype == b.dtype
+        np.testing.assert_array_equal(a, b)
+    assert np.all(serial[1][n:] == h) and np.all(serial[2][:n] == events.t_us - 1000)
+
+
+def test_cube_comes_home_whole_and_writable(monkeypatch):
+    # The accelerator's route of a cube to the host (pinned host memory, then a copy
+    # in slices on several threads), run here on the CPU: the same values, a new
+    # writable array, for sizes that do not divide into the slices.
+    from evhsi_jax._base import shard
+    from evhsi_jax._reconstruct import _pipeline
+
+    monkeypatch.setattr(shard, "usable_cores", lambda: 3)
+    monkeypatch.setattr(_pipeline, "PINNED_MIN_BYTES", 1000)
+    rng = np.random.default_rng(4)
+    for shape in ((101, 7), (5,), (37, 73)):
+        a = jnp.asarray(rng.standard_normal(shape), jnp.float32)
+        for pinned in (True, False, None):
+            got = _pipeline._to_host(a, via_pinned=pinned)
+            assert got.flags.writeable and got.shape == shape and got.dtype == a.dtype
+            np.testing.assert_array_equal(got, np.asarray(a))
+            got[...] = 0  # its own memory: the device array is untouched
+            assert np.asarray(a).any()
