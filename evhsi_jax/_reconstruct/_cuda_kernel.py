@@ -766,6 +766,46 @@ def to_jax(a):
         return jax.device_put(a.copy_to_host())
 
 
+@functools.cache
+def self_check(m: int) -> str | None:
+    """Whether the kernel compiles and solves on this GPU (None) or why not (the
+    error, one line): what `backend="auto"` asks before it picks the kernel, once
+    per process and channel count, so that a numba whose CUDA target cannot build or
+    launch (driver, toolkit) leaves `auto` on JAX instead of failing. Two pixels of
+    `m` channels, each with one row per channel asking x = 0.5, must come back
+    within 0.02 of 0.5 (the priors' weights here are tiny)."""
+    from ._problem import spectral_prior_matrix
+
+    try:
+        b = 2
+        ev = np.zeros((b, m, m + 1), np.float32)
+        ev[:, np.arange(m), np.arange(m)] = 1.0
+        ev[:, :, m] = -0.5
+        drift = np.zeros((b, 1, m + 1), np.float32)
+        n = np.full(b, m, np.int32)
+        spec_w = np.full(b, 1e-6, np.float32)
+        if not simulated():
+            ev, drift, n, spec_w = (cuda.to_device(a) for a in (ev, drift, n, spec_w))
+        out = (
+            (np.zeros((b, m), np.float32), np.zeros(b, np.float32),
+             np.zeros(b, np.int32))
+            if simulated()
+            else (cuda.device_array((b, m), np.float32),
+                  cuda.device_array(b, np.float32), cuda.device_array(b, np.int32))
+        )  # fmt: skip
+        launch(
+            ev, None, n, drift, spec_w, spectral_prior_matrix(m, 0.3, "d2"), 1e-9,
+            1e-6, 48, *out, threads=SIM_THREADS if simulated() else THREADS,
+        )  # fmt: skip
+        synchronize()
+        x, steps = (a if simulated() else a.copy_to_host() for a in (out[0], out[2]))
+    except Exception as err:  # (numba's errors are of many kinds)
+        return f"{type(err).__name__}: {err}".splitlines()[0][:200]
+    if not (np.all(steps >= 0) and np.all(np.abs(x - 0.5) < 0.02)):
+        return f"wrong answers on the check problem (x in [{x.min()}, {x.max()}])"
+    return None
+
+
 def why_not(spec, cfg, dtype, mesh) -> str | None:
     """Why the CUDA kernel cannot solve this reconstruction (None: it can)."""
     import jax

@@ -167,3 +167,58 @@ def test_kernel_variant_strings():
     for bad in ("gpu:none", "shared:many", "shared", "global:none:fast"):
         with pytest.raises(ValueError, match="PLACE:REGS"):
             ck.variant(bad)
+
+
+AUTO = r"""
+import json, warnings
+import numpy as np
+import jax.random as jr
+import evhsi_jax as ev
+from evhsi_jax._base import shard
+from evhsi_jax._reconstruct import _cuda_kernel as ck, _pipeline
+
+assert ck.simulated()
+out = {"check": ck.self_check(16)}
+real_launch = ck.launch
+ck.launch = lambda *a, **k: None  # answers never written
+out["check_unwritten"] = ck.self_check(12)
+def fails(*a, **k):
+    raise RuntimeError("CUDA_ERROR_NO_BINARY_FOR_GPU\nmore lines")
+ck.launch = fails
+out["check_raises"] = ck.self_check(13)
+ck.launch = real_launch
+rig = ev.Rig(channels=16)
+spec, cfg = _pipeline.solver_spec("auto"), _pipeline.ProblemConfig()
+shard.device_platform = lambda mesh=None: "gpu"  # as on a CUDA GPU
+ck.why_not = lambda *a: None
+out["auto_gpu"] = _pipeline._use_cuda("auto", False, spec, cfg, rig, None)
+ck.self_check = lambda m: "RuntimeError: no kernel image"  # a broken CUDA target
+with warnings.catch_warnings(record=True) as caught:
+    warnings.simplefilter("always")
+    out["auto_broken"] = _pipeline._use_cuda("auto", False, spec, cfg, rig, None)
+out["warned"] = [str(w.message) for w in caught]
+out["cuda_broken"] = _pipeline._use_cuda("cuda", False, spec, cfg, rig, None)
+_pipeline.AUTO_CUDA = False
+out["auto_off"] = _pipeline._use_cuda("auto", False, spec, cfg, rig, None)
+print(json.dumps(out))
+"""
+
+
+def test_auto_picks_the_kernel_only_after_its_self_check():
+    """`backend="auto"` on a CUDA GPU (faked here: the simulator) takes the kernel
+    once its self-check (a tiny problem with a known answer) passes; a failing
+    check gives a warning naming it and JAX, never an error. `"cuda"` asks for the
+    kernel without the check."""
+    env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1")
+    res = subprocess.run([sys.executable, "-c", AUTO], env=env, capture_output=True,
+                         text=True, timeout=600)  # fmt: skip
+    assert res.returncode == 0, res.stderr[-3000:]
+    out = json.loads(res.stdout.strip().splitlines()[-1])
+    assert out["check"] is None  # the real kernel, in the simulator, passes
+    assert out["check_unwritten"].startswith("wrong answers")
+    assert out["check_raises"] == "RuntimeError: CUDA_ERROR_NO_BINARY_FOR_GPU"
+    assert out["auto_gpu"] is True
+    assert out["auto_broken"] is False
+    assert len(out["warned"]) == 1 and "no kernel image" in out["warned"][0]
+    assert out["cuda_broken"] is True
+    assert out["auto_off"] is False
