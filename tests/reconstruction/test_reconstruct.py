@@ -513,3 +513,11 @@ def test_cube_comes_home_whole_and_writable(monkeypatch):
             np.testing.assert_array_equal(got, np.asarray(a))
             got[...] = 0  # its own memory: the device array is untouched
             assert np.asarray(a).any()
+    # A device (or JAX) without pinned host memory: the plain copy.
+    def no_pinned(*args, **kw):
+        raise ValueError("memory kind pinned_host is not supported")
+
+    monkeypatch.setattr(_pipeline.jax, "device_put", no_pinned)
+    got = _pipeline._to_host(a, via_pinned=True)
+    assert got.flags.writeable
+    np.testing.assert_array_equal(got, np.asarray(a))
