@@ -92,6 +92,15 @@ def save(name: str, payload: dict, fig=None):
     print(f"wrote {OUT / name}.json" + (" and .png" if fig is not None else ""))
 
 
+def write_json(path, report: dict):
+    """Write `report` to `path` (a results file a script was told to write; its
+    folder made), and say so."""
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(report, indent=2, default=_jsonable))
+    print("wrote", out)
+
+
 def _jsonable(v):
     if isinstance(v, np.generic):
         return v.item()

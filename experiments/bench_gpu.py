@@ -36,18 +36,16 @@ from __future__ import annotations
 import argparse
 import cProfile
 import io
-import json
 import platform
 import pstats
 import statistics
 import time
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
-from _common import matmul_gflops
+from _common import matmul_gflops, write_json
 
 import evhsi_jax as ev
 from evhsi_jax._model import band_table
@@ -168,10 +166,14 @@ def main():
     ap.add_argument(
         "--backends", default="", help="also time the whole call with these (jax,cuda)"
     )
-    ap.add_argument("--whole-only", action="store_true",
-                    help="time the whole calls only (no parts, no host grouping)")
-    ap.add_argument("--no-float64", action="store_true",
-                    help="leave out the float64 check")
+    ap.add_argument(
+        "--whole-only",
+        action="store_true",
+        help="time the whole calls only (no parts, no host grouping)",
+    )
+    ap.add_argument(
+        "--no-float64", action="store_true", help="leave out the float64 check"
+    )
     ap.add_argument("--profile", type=int, default=0, metavar="N",
                     help="cProfile one more warm whole call per backend: its N "
                          "costliest functions (own time, and with callees)")  # fmt: skip
@@ -193,8 +195,9 @@ def main():
     rig = ev.Rig()
     report["auto_backend"] = (
         "cuda"
-        if pipe._use_cuda("auto", False, pipe.solver_spec("auto"),
-                          pipe.ProblemConfig(), rig, None)  # fmt: skip
+        if pipe._use_cuda(
+            "auto", False, pipe.solver_spec("auto"), pipe.ProblemConfig(), rig, None
+        )  # fmt: skip
         else "jax or fused"
     )
     print(report, flush=True)
@@ -299,7 +302,7 @@ def main():
                 print("  batch", variant, {k: v for k, v in part.items()
                                            if "times" not in k}, flush=True)  # fmt: skip
     if "ideal path" not in report or args.no_float64:
-        return _write(report, args.out)
+        return write_json(args.out, report)
     # float32 against a float64 solve of the same events (whole image).
     jax.config.update("jax_enable_x64", True)
     rig64 = rig.astype(jnp.float64)
@@ -323,14 +326,7 @@ def main():
             "max_deg": float(np.max(d)),
         }
     print("float64", report["float64_check"], flush=True)
-    _write(report, args.out)
-
-
-def _write(report, path):
-    out = Path(path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(report, indent=2))
-    print("wrote", out)
+    write_json(args.out, report)
 
 
 if __name__ == "__main__":

@@ -40,13 +40,12 @@ import argparse
 import json
 import statistics
 import time
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
-from _common import matmul_gflops
+from _common import matmul_gflops, write_json
 
 import evhsi_jax as ev
 from evhsi_jax._base import njit
@@ -312,10 +311,7 @@ def main():
     acc["kernel_failed"] = int(np.sum(steps_real < 0))
     report["accuracy"] = acc
     print("accuracy", json.dumps(acc, indent=1), flush=True)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(report, indent=2))
-    print("wrote", out)
+    write_json(args.out, report)
 
 
 if __name__ == "__main__":

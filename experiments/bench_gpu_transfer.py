@@ -28,22 +28,20 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures
-import json
 import statistics
 import time
 import traceback
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from _common import matmul_gflops
+from _common import matmul_gflops, write_json
 
 import evhsi_jax as ev
 from evhsi_jax._reconstruct import _pixels
 
 
-def median_time(fn, repeats, setup=lambda: None):
+def times_with_setup(fn, repeats, setup=lambda: None):
     """Median and all times of `fn(setup())`, `setup` untimed."""
     times = []
     for i in range(repeats):
@@ -62,7 +60,9 @@ def touch(shape, threads):
     flat = a.reshape(-1)
     step = -(-flat.size // threads)
     with concurrent.futures.ThreadPoolExecutor(threads) as pool:
-        list(pool.map(lambda i: flat[i : i + step].fill(0.0), range(0, flat.size, step)))
+        list(
+            pool.map(lambda i: flat[i : i + step].fill(0.0), range(0, flat.size, step))
+        )
     return a
 
 
@@ -113,8 +113,10 @@ def main():
         "pinned": (lambda x: pinned(x, False), fresh),
         "pinned_writable": (lambda x: pinned(x, True), fresh),
         "numba": (lambda x: numba_into(x, held["out"]), prefaulted),
-        "numba_fresh": (lambda x: numba_into(x, np.empty((h * w, m), np.float32)),
-                        fresh),  # fmt: skip
+        "numba_fresh": (
+            lambda x: numba_into(x, np.empty((h * w, m), np.float32)),
+            fresh,
+        ),  # fmt: skip
         "touch_1": (lambda _: touch((h * w, m), 1), lambda: None),
         "touch_8": (lambda _: touch((h * w, m), 8), lambda: None),
     }
@@ -127,7 +129,7 @@ def main():
                 report.setdefault("same_values", {})[name] = bool(
                     np.array_equal(got, want)
                 )  # fmt: skip
-            report[name] = median_time(fn, args.repeats, setup)
+            report[name] = times_with_setup(fn, args.repeats, setup)
         except Exception as err:  # e.g. no numba CUDA target, no pinned memory
             report[name] = {"error": "".join(
                 traceback.format_exception_only(type(err), err)).strip()[:300]}  # fmt: skip
@@ -143,15 +145,12 @@ def main():
     default = _pixels.THREADED_LISTS_MIN
     for name, least in (("lists_serial", 1 << 62), ("lists_threaded", default)):
         _pixels.THREADED_LISTS_MIN = least
-        report[name] = median_time(
+        report[name] = times_with_setup(
             lambda _: _pixels._padded_for_device(events, 0), args.repeats
         )  # fmt: skip
         print(name, report[name], flush=True)
     _pixels.THREADED_LISTS_MIN = default
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(report, indent=2))
-    print("wrote", out)
+    write_json(args.out, report)
 
 
 if __name__ == "__main__":

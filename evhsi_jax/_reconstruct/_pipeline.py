@@ -761,6 +761,7 @@ def reconstruct(
             jnp.full((h * w, m), _no_event_answer(rig, m), jnp.float32),
             jnp.full(h * w, jnp.nan, jnp.float32),
         )
+
     def solved():  # each chunk with its answers
         if solve is _solve_chunk_cuda and noise_j is None:  # the next chunk's rows
             # formed while the kernel solves one

@@ -159,7 +159,9 @@ def test_device_grouping_gives_the_host_batches(capture, monkeypatch):
         monkeypatch.setattr(_pipeline, "DEVICE_GROUPING", where)
         per_place.append(ev.reconstruct(events, gained, **kw)[0])
     np.testing.assert_array_equal(per_place[0], per_place[1])
-    assert per_place[0].max() == np.float32(ev.reconstruction.ProblemConfig().max_reflectance)
+    assert per_place[0].max() == np.float32(
+        ev.reconstruction.ProblemConfig().max_reflectance
+    )
 
 
 def test_device_finish_is_the_hosts():
@@ -181,7 +183,9 @@ def test_device_finish_is_the_hosts():
             want = want * g
         if clip is not None:
             want = np.clip(want, 0.0, clip)
-        got, got_k = _finish_on_device(jnp.asarray(cube), jnp.asarray(kkt), 0.04, g, clip)
+        got, got_k = _finish_on_device(
+            jnp.asarray(cube), jnp.asarray(kkt), 0.04, g, clip
+        )
         np.testing.assert_array_equal(np.asarray(got), want)
         np.testing.assert_array_equal(np.asarray(got_k), want_k)
 
@@ -513,6 +517,7 @@ def test_cube_comes_home_whole_and_writable(monkeypatch):
             np.testing.assert_array_equal(got, np.asarray(a))
             got[...] = 0  # its own memory: the device array is untouched
             assert np.asarray(a).any()
+
     # A device (or JAX) without pinned host memory: the plain copy.
     def no_pinned(*args, **kw):
         raise ValueError("memory kind pinned_host is not supported")
