@@ -595,9 +595,10 @@ def reconstruct(
       :mod:`._cuda_kernel` their Gram matrices and box QPs in the GPU's on-chip
       memory, float32, each chunk's rows formed while the kernel solves the one
       before; needs numba's CUDA target, the active-set solver and a float32 rig;
-      on an H100 a whole sweep 1.34× faster than jax) or `"auto"` (default): fused
-      where it applies and the solve would run on a CPU, cuda where it applies on a
-      CUDA GPU and passes its self-check (`AUTO_CUDA`), else JAX.
+      on an H100 a warm whole sweep 1.34× faster than jax, after numba's compilation
+      in each process) or `"auto"` (default): fused where it applies and the solve
+      would run on a CPU, else JAX (cuda on a CUDA GPU only with `AUTO_CUDA`, after
+      its self-check).
       The fused cube is the float64 solve of the same events (within 0.01° SAM of the
       JAX path run in float64; float32 JAX and cuda differ from both by their
       rounding).
@@ -848,10 +849,14 @@ BACKENDS = ("auto", "jax", "fused", "cuda")
 #: Whether `backend="auto"` picks the CUDA kernel on a CUDA GPU where it applies
 #: (numba's CUDA target installed, the active-set solver, a float32 rig, one
 #: device) and where it passes its self-check (`_cuda_kernel.self_check`, once per
-#: process). On an H100 a whole 1280×720 sweep takes 0.51 s with it against 0.68 s
-#: with JAX (0.68 s against 1.00 s with the noise model; README, Performance, "One
-#: GPU"), at the same accuracy against a float64 solve.
-AUTO_CUDA = True
+#: process). On an H100 a warm whole 1280×720 sweep takes 0.51 s with it against
+#: 0.68 s with JAX (0.68 s against 1.00 s with the noise model; README, Performance,
+#: "One GPU"), at the same accuracy against a float64 solve. Off all the same: numba
+#: compiles the kernel again in every process (not kept on disk, unlike JAX's
+#: programs with the compilation cache; ~10 s on that H100, estimated from the
+#: cold calls, not timed apart), which costs a one-sweep command more than it
+#: gains. `backend="cuda"` asks for it: many sweeps in one process.
+AUTO_CUDA = False
 
 
 def _use_cuda(backend, fused, spec, cfg, rig, mesh) -> bool:

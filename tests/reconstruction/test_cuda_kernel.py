@@ -191,6 +191,8 @@ rig = ev.Rig(channels=16)
 spec, cfg = _pipeline.solver_spec("auto"), _pipeline.ProblemConfig()
 shard.device_platform = lambda mesh=None: "gpu"  # as on a CUDA GPU
 ck.why_not = lambda *a: None
+out["auto_default"] = _pipeline._use_cuda("auto", False, spec, cfg, rig, None)
+_pipeline.AUTO_CUDA = True
 out["auto_gpu"] = _pipeline._use_cuda("auto", False, spec, cfg, rig, None)
 ck.self_check = lambda m: "RuntimeError: no kernel image"  # a broken CUDA target
 with warnings.catch_warnings(record=True) as caught:
@@ -205,10 +207,11 @@ print(json.dumps(out))
 
 
 def test_auto_picks_the_kernel_only_after_its_self_check():
-    """`backend="auto"` on a CUDA GPU (faked here: the simulator) takes the kernel
-    once its self-check (a tiny problem with a known answer) passes; a failing
-    check gives a warning naming it and JAX, never an error. `"cuda"` asks for the
-    kernel without the check."""
+    """`backend="auto"` on a CUDA GPU (faked here: the simulator) leaves the kernel
+    out by default (`AUTO_CUDA`: numba compiles it in every process); with
+    `AUTO_CUDA` on it takes the kernel once its self-check (a tiny problem with a
+    known answer) passes; a failing check gives a warning naming it and JAX, never
+    an error. `"cuda"` asks for the kernel without the check."""
     env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1")
     res = subprocess.run([sys.executable, "-c", AUTO], env=env, capture_output=True,
                          text=True, timeout=600)  # fmt: skip
@@ -217,6 +220,7 @@ def test_auto_picks_the_kernel_only_after_its_self_check():
     assert out["check"] is None  # the real kernel, in the simulator, passes
     assert out["check_unwritten"].startswith("wrong answers")
     assert out["check_raises"] == "RuntimeError: CUDA_ERROR_NO_BINARY_FOR_GPU"
+    assert out["auto_default"] is False
     assert out["auto_gpu"] is True
     assert out["auto_broken"] is False
     assert len(out["warned"]) == 1 and "no kernel image" in out["warned"][0]
