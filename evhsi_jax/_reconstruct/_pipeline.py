@@ -911,9 +911,8 @@ def _finish_on_device(cube, kkt_all, no_event, gain, clip_max):
     """What `reconstruct` does to the host's cube after the solves, on the device's
     cube: non-finite answers replaced by the no-event answer `no_event` and flagged
     (KKT = inf), multiplied by the inverse white-reference gains `gain` `(M,)`
-    (None: none), clipped
-    to [0, `clip_max`] (None: not here; the host clips after its hot-pixel fill or
-    deblurring). The same values as the host's NumPy passes."""
+    (None: none), clipped to [0, `clip_max`] (None: not here; the host clips after
+    its hot-pixel fill or deblurring). The same values as the host's NumPy passes."""
     bad = ~jnp.isfinite(cube)
     cube = jnp.where(bad, jnp.asarray(no_event, cube.dtype), cube)
     kkt_all = jnp.where(jnp.any(bad, axis=1), jnp.inf, kkt_all)
