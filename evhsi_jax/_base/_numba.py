@@ -78,8 +78,12 @@ def use_backend(name: str) -> Iterator[None]:
 
 
 def njit(
-    fn: Callable | None = None, *, inline: bool = False, fastmath=False,
+    fn: Callable | None = None,
+    *,
+    inline: bool = False,
+    fastmath=False,
     slp: bool = False,
+    error_model: str = "python",
 ) -> Callable:
     """`numba.njit(cache=True, nogil=True)`, without the cache when no folder for it is
     writable (numba raises then instead of falling back). `inline=True`: inlined into
@@ -87,17 +91,23 @@ def njit(
     `fastmath`: numba's LLVM flags (e.g. `{"reassoc", "contract"}` lets sums be
     vectorised in a different order). `slp=True`: compiled with LLVM's SLP
     vectoriser, which numba switches off process-wide by default (numba PR #8852,
-    after miscompilations reported on older LLVM); see :func:`_with_slp`."""
+    after miscompilations reported on older LLVM); see :func:`_with_slp`.
+    `error_model="numpy"`: a float division by zero gives inf or NaN as in NumPy
+    instead of raising — numba's default (`"python"`) tests every divisor, and that
+    branch keeps LLVM from vectorising a loop with a division in it."""
     import numba
 
     if fn is None:
-        return lambda f: njit(f, inline=inline, fastmath=fastmath, slp=slp)
+        return lambda f: njit(
+            f, inline=inline, fastmath=fastmath, slp=slp, error_model=error_model
+        )
+    opts = {"fastmath": fastmath, "error_model": error_model}
     if inline:
-        return numba.njit(inline="always", fastmath=fastmath)(fn)
+        return numba.njit(inline="always", **opts)(fn)
     try:
-        disp = numba.njit(cache=True, nogil=True, fastmath=fastmath)(fn)
+        disp = numba.njit(cache=True, nogil=True, **opts)(fn)
     except RuntimeError:
-        disp = numba.njit(nogil=True, fastmath=fastmath)(fn)
+        disp = numba.njit(nogil=True, **opts)(fn)
     return _with_slp(disp) if slp else disp
 
 
