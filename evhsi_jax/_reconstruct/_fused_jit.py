@@ -896,6 +896,19 @@ _LN2_LO = 1.90821492927058770002e-10
 _INV_LN2 = 1.44269504088896338700e00
 _ROUND = 6755399441055744.0  # 1.5 · 2^52
 _SQRT_HALF_BITS = 0x3FE6A09E667F3BCD  # the bits of √2 / 2
+_EXP_TAYLOR = tuple(1.0 / math.factorial(i) for i in range(13, -1, -1))  # 1/13! … 1
+_ATANH_SERIES = tuple(1.0 / i for i in range(23, 2, -2))  # 1/23, 1/21, … 1/3
+
+
+@njit(inline=True)
+@no_type_check
+def _horner(coefs, x):
+    """The polynomial with coefficients `coefs` (highest power first) at `x` (a loop
+    of constant length over a tuple: unrolled, so the caller's loop vectorises)."""
+    p = 0.0
+    for c in coefs:
+        p = p * x + c
+    return p
 
 
 @njit(inline=True)
@@ -912,20 +925,7 @@ def _exp_rows(a, r, n):
         t = v * _INV_LN2 + _ROUND
         kf = t - _ROUND
         f = (v - kf * _LN2_HI) - kf * _LN2_LO
-        p = 1.0 / 6227020800.0
-        p = p * f + 1.0 / 479001600.0
-        p = p * f + 1.0 / 39916800.0
-        p = p * f + 1.0 / 3628800.0
-        p = p * f + 1.0 / 362880.0
-        p = p * f + 1.0 / 40320.0
-        p = p * f + 1.0 / 5040.0
-        p = p * f + 1.0 / 720.0
-        p = p * f + 1.0 / 120.0
-        p = p * f + 1.0 / 24.0
-        p = p * f + 1.0 / 6.0
-        p = p * f + 0.5
-        p = p * f + 1.0
-        a[r, j] = p * f + 1.0
+        a[r, j] = _horner(_EXP_TAYLOR, f)
         a[0, j] = t
     for j in range(n):  # 2^k: k + 1023 into the exponent field
         bits[0, j] = (bits[0, j] + np.uint64(1023)) << np.uint64(52)
@@ -954,17 +954,7 @@ def _log_rows(a, src, dst, n):
         f = a[0, j] - 1.0
         s = f / (2.0 + f)
         z = s * s
-        p = 1.0 / 23.0
-        p = p * z + 1.0 / 21.0
-        p = p * z + 1.0 / 19.0
-        p = p * z + 1.0 / 17.0
-        p = p * z + 1.0 / 15.0
-        p = p * z + 1.0 / 13.0
-        p = p * z + 1.0 / 11.0
-        p = p * z + 1.0 / 9.0
-        p = p * z + 1.0 / 7.0
-        p = p * z + 1.0 / 5.0
-        p = p * z + 1.0 / 3.0
+        p = _horner(_ATANH_SERIES, z)
         a[dst, j] = k * _LN2_HI + (2.0 * s + (2.0 * s * z * p + k * _LN2_LO))
 
 
