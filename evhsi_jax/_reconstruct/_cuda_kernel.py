@@ -774,6 +774,8 @@ def self_check(m: int) -> str | None:
     launch (driver, toolkit) leaves `auto` on JAX instead of failing. Two pixels of
     `m` channels, each with one row per channel asking x = 0.5, must come back
     within 0.02 of 0.5 (the priors' weights here are tiny)."""
+    from types import SimpleNamespace
+
     from ._problem import spectral_prior_matrix
 
     try:
@@ -781,24 +783,16 @@ def self_check(m: int) -> str | None:
         ev = np.zeros((b, m, m + 1), np.float32)
         ev[:, np.arange(m), np.arange(m)] = 1.0
         ev[:, :, m] = -0.5
-        drift = np.zeros((b, 1, m + 1), np.float32)
-        n = np.full(b, m, np.int32)
-        spec_w = np.full(b, 1e-6, np.float32)
+        arrays = (ev, np.zeros((b, 1, m + 1), np.float32), np.full(b, 1e-6, np.float32),
+                  np.full(b, m, np.int32))  # fmt: skip
         if not simulated():
-            ev, drift, n, spec_w = (cuda.to_device(a) for a in (ev, drift, n, spec_w))
-        out = (
-            (np.zeros((b, m), np.float32), np.zeros(b, np.float32),
-             np.zeros(b, np.int32))
-            if simulated()
-            else (cuda.device_array((b, m), np.float32),
-                  cuda.device_array(b, np.float32), cuda.device_array(b, np.int32))
+            arrays = tuple(cuda.to_device(a) for a in arrays)
+        rows = SimpleNamespace(events=arrays[0], drift=arrays[1], spec_weight=arrays[2])
+        x, _, steps = solve_rows(
+            rows, arrays[3], spectral_prior_matrix(m, 0.3, "d2"), 1e-9, 1e-6, 48
         )  # fmt: skip
-        launch(
-            ev, None, n, drift, spec_w, spectral_prior_matrix(m, 0.3, "d2"), 1e-9,
-            1e-6, 48, *out, threads=SIM_THREADS if simulated() else THREADS,
-        )  # fmt: skip
-        synchronize()
-        x, steps = (a if simulated() else a.copy_to_host() for a in (out[0], out[2]))
+        if not simulated():
+            x, steps = x.copy_to_host(), steps.copy_to_host()
     except Exception as err:  # (numba's errors are of many kinds)
         return f"{type(err).__name__}: {err}".splitlines()[0][:200]
     if not (np.all(steps >= 0) and np.all(np.abs(x - 0.5) < 0.02)):
