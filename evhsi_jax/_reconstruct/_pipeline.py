@@ -401,18 +401,17 @@ def _solve_chunks_cuda(rig, table, cfg, spec, chunks, sweeps):
     each with its `(x, kkt)` (JAX arrays), in order — :func:`_solve_chunk_cuda`'s
     answers. The kernel runs on numba's stream, JAX on its own, so the host orders
     them: it waits for a chunk's rows before launching the kernel on them, and for
-    the kernel before JAX reads its answers; a chunk's rows stay referenced until
-    then (JAX would reuse their memory), and numba frees nothing meanwhile (a free
-    waits for the whole device)."""
+    the kernel before JAX reads its answers; a chunk's rows stay referenced (in
+    `pending`) until then (JAX would reuse their memory), and numba frees nothing
+    meanwhile (a free waits for the whole device)."""
     from . import _cuda_kernel as ck
 
     m = table.values.shape[1]
     prior = spectral_prior_matrix(m, cfg.m_start_frac, cfg.spec_kind)
     pending = None  # (chunk, its answers on numba's side, its rows)
 
-    def answers(chunk, out, inputs):
+    def answers(chunk, out, _rows):
         ck.synchronize()
-        del inputs  # (now free to go)
         return (*chunk, ck.to_jax(out[0]), ck.to_jax(out[1]))
 
     with ck.deferred_frees():
@@ -806,7 +805,7 @@ def reconstruct(
     if held is not None:  # finished on the device: one pass there, not four here
         clipped = not (hot.any() or deblurred)
         cube, kkt_all = (
-            _to_host(a)
+            shard.to_host_copy(a)
             for a in _finish_on_device(
                 *held, _no_event_answer(rig, m), gain,
                 cfg.max_reflectance if clipped else None,
@@ -921,50 +920,6 @@ def _finish_on_device(cube, kkt_all, no_event, gain, clip_max):
     if clip_max is not None:
         cube = jnp.clip(cube, 0.0, jnp.asarray(clip_max, cube.dtype))
     return cube, kkt_all
-
-
-def _to_host(a: jax.Array, via_pinned: bool | None = None) -> np.ndarray:
-    """A device array as a new writable NumPy array. From an accelerator
-    (`via_pinned` None: not a CPU) through the host's pinned memory — the copy then
-    runs at the bus's rate (a 1280×720 cube, 270 MB, in 6 ms on an H100, against
-    0.2 s for JAX's own copy into pageable memory and 0.1 s more for NumPy's
-    writable copy of it: `experiments/bench_gpu_transfer.py`) — and from there into
-    the result on the usable cores (`_copy_threaded`: the fresh pages are touched by
-    several at once). Where the device has no pinned host memory: `np.array`."""
-    if via_pinned is None:
-        via_pinned = next(iter(a.devices())).platform != "cpu"
-    if not via_pinned or a.nbytes < PINNED_MIN_BYTES:
-        return np.array(a)
-    try:
-        src = np.asarray(
-            jax.device_put(a, a.sharding.with_memory_kind("pinned_host"))
-        )  # fmt: skip
-    except Exception:  # (a device or JAX without that memory kind)
-        return np.array(a)
-    return _copy_threaded(src)
-
-
-#: Below this size a device array comes home by `np.array` (:func:`_to_host`).
-PINNED_MIN_BYTES = 1 << 24
-
-
-def _copy_threaded(src: np.ndarray) -> np.ndarray:
-    """A new array equal to `src`, copied in slices on the usable cores (at most 8;
-    NumPy's copy releases the GIL) from 16 MiB on."""
-    out = np.empty_like(src)
-    flat_in, flat_out = src.reshape(-1), out.reshape(-1)
-    workers = min(shard.usable_cores(), 8)
-    if workers == 1 or src.nbytes < PINNED_MIN_BYTES:
-        np.copyto(flat_out, flat_in)
-        return out
-    step = -(-flat_in.size // (4 * workers))
-
-    def part(i):
-        np.copyto(flat_out[i : i + step], flat_in[i : i + step])
-
-    with concurrent.futures.ThreadPoolExecutor(workers) as pool:
-        list(pool.map(part, range(0, flat_in.size, step)))
-    return out
 
 
 #: Where the JAX backend sorts the events by pixel and cuts the padded batches:

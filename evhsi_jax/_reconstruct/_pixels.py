@@ -331,23 +331,14 @@ def _padded_for_device(events: EventStream, t_start_us: int):
     t_rel = np.empty(n_pad, np.int32)  # (no int64 temporary: `fits` checked)
     x, y, p = (np.empty(n_pad, a.dtype) for a in (events.x, events.y, events.p))
 
-    def part(i0, i1):
-        np.subtract(events.t_us[i0:i1], t_start_us, out=t_rel[i0:i1], casting="unsafe")
-        x[i0:i1], y[i0:i1], p[i0:i1] = events.x[i0:i1], events.y[i0:i1], events.p[i0:i1]
+    def part(i0, i1):  # the events' slots of [i0, i1), then the padding's
+        e1 = min(i1, n)
+        np.subtract(events.t_us[i0:e1], t_start_us, out=t_rel[i0:e1], casting="unsafe")
+        x[i0:e1], y[i0:e1], p[i0:e1] = events.x[i0:e1], events.y[i0:e1], events.p[i0:e1]
+        p0 = max(i0, n)
+        t_rel[p0:i1], x[p0:i1], p[p0:i1], y[p0:i1] = 0, 0, 0, h
 
-    def pad(i0, i1):
-        t_rel[i0:i1], x[i0:i1], p[i0:i1], y[i0:i1] = 0, 0, 0, h
-
-    workers = min(shard.usable_cores(), 8)
-    if workers > 1 and n >= THREADED_LISTS_MIN:
-        step = -(-n_pad // (4 * workers))
-        cuts = [(i, min(i + step, n_pad)) for i in range(0, n_pad, step)]
-        with concurrent.futures.ThreadPoolExecutor(workers) as pool:
-            list(pool.map(lambda c: (part(c[0], min(c[1], n)),
-                                     pad(max(c[0], n), c[1])), cuts))  # fmt: skip
-    else:
-        part(0, n)
-        pad(n, n_pad)
+    shard.in_slices(n_pad, part, threaded=n >= THREADED_LISTS_MIN)
     return x, y, t_rel, p
 
 

@@ -504,15 +504,14 @@ def test_cube_comes_home_whole_and_writable(monkeypatch):
     # in slices on several threads), run here on the CPU: the same values, a new
     # writable array, for sizes that do not divide into the slices.
     from evhsi_jax._base import shard
-    from evhsi_jax._reconstruct import _pipeline
 
     monkeypatch.setattr(shard, "usable_cores", lambda: 3)
-    monkeypatch.setattr(_pipeline, "PINNED_MIN_BYTES", 1000)
+    monkeypatch.setattr(shard, "PINNED_MIN_BYTES", 1000)
     rng = np.random.default_rng(4)
     for shape in ((101, 7), (5,), (37, 73)):
         a = jnp.asarray(rng.standard_normal(shape), jnp.float32)
         for pinned in (True, False, None):
-            got = _pipeline._to_host(a, via_pinned=pinned)
+            got = shard.to_host_copy(a, via_pinned=pinned)
             assert got.flags.writeable and got.shape == shape and got.dtype == a.dtype
             np.testing.assert_array_equal(got, np.asarray(a))
             got[...] = 0  # its own memory: the device array is untouched
@@ -522,7 +521,7 @@ def test_cube_comes_home_whole_and_writable(monkeypatch):
     def no_pinned(*args, **kw):
         raise ValueError("memory kind pinned_host is not supported")
 
-    monkeypatch.setattr(_pipeline.jax, "device_put", no_pinned)
-    got = _pipeline._to_host(a, via_pinned=True)
+    monkeypatch.setattr(shard.jax, "device_put", no_pinned)
+    got = shard.to_host_copy(a, via_pinned=True)
     assert got.flags.writeable
     np.testing.assert_array_equal(got, np.asarray(a))
