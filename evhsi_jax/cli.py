@@ -833,11 +833,12 @@ def build_parser() -> argparse.ArgumentParser:
         choices=["auto", "jax", "fused", "cuda"],
         help="auto (default): the fused CPU kernel (each pixel's system formed from "
         "band segments and solved in float64 on every core) where it applies — "
-        "active-set solver, solve on a CPU — else the JAX kernels; cuda: JAX's "
-        "rows, each pixel's Gram and box QP by a CUDA kernel on the GPU's chip "
-        "(numba's CUDA target; faster per sweep, but compiled in every process: "
-        "for many sweeps); jax, fused or cuda to choose (fused and cuda refuse "
-        "what they cannot run)",
+        "active-set solver, solve on a CPU — else the JAX kernels, and on a CUDA "
+        "GPU the cuda kernel for captures of at least 2^19 pixel-sweeps; cuda: "
+        "JAX's rows, each pixel's Gram and box QP by a CUDA kernel on the GPU's "
+        "chip (numba's CUDA target, kernel cached on disk; ~1 s of numba start "
+        "per process, faster per sweep); jax, fused or cuda to choose (fused and "
+        "cuda refuse what they cannot run)",
     )
     p.add_argument(
         "--threads",

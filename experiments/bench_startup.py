@@ -6,7 +6,14 @@ each command `--repeats` times in fresh processes: the first run with an empty c
 folder (compiles everything), the rest with the cache it filled. Prints the times
 (medians of the warm runs) and this machine's float32 matmul GFLOP/s.
 
+Both caches start empty: JAX's (`EVHSI_CACHE_DIR`) and numba's (`NUMBA_CACHE_DIR`, a
+fresh folder: the host kernels and, with `--backends cuda`, the CUDA kernel). The
+"cache off" run turns off JAX's cache and the CUDA kernel's (`EVHSI_CUDA_CACHE=0`);
+numba's host kernels are then still loaded from the folder the first runs filled.
+`--backends jax,cuda` times `evhsi reconstruct --backend B` for each (a GPU).
+
     .venv/bin/python experiments/bench_startup.py [--size 96x144] [--repeats 3]
+        [--backends default|auto,jax,fused,cuda]
 """
 
 from __future__ import annotations
@@ -50,26 +57,32 @@ def main() -> None:
     p.add_argument("--size", default="96x144")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--jobs", default="reconstruct,calibrate", help="which commands")
+    p.add_argument("--backends", default="default",
+                   help="reconstruct's --backend values to time (default: none given)")
     p.add_argument("--json", default="experiments/results/bench_startup.json")
     a = p.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         d = Path(tmp)
-        env = {**os.environ, "EVHSI_CACHE_DIR": str(d / "cache")}
-        off = {**os.environ, "EVHSI_CACHE_DIR": "off"}
+        env = {**os.environ, "EVHSI_CACHE_DIR": str(d / "cache"),
+               "NUMBA_CACHE_DIR": str(d / "numba")}  # fmt: skip
+        off = {**env, "EVHSI_CACHE_DIR": "off", "EVHSI_CUDA_CACHE": "0"}
         subprocess.run([*EVHSI, "simulate", "--scene", "colorchecker", "--size", a.size,
                         "--out", d / "cc.raw", "--quiet"], check=True, env=off)  # fmt: skip
-        subprocess.run([*EVHSI, "simulate", "--scene", "gray-chart", "--size", a.size,
-                        "--sweeps", "2", "--out", d / "gray.npz", "--quiet"], check=True,
-                       env=off)  # fmt: skip
+        if "calibrate" in a.jobs.split(","):
+            subprocess.run([*EVHSI, "simulate", "--scene", "gray-chart", "--size",
+                            a.size, "--sweeps", "2", "--out", d / "gray.npz",
+                            "--quiet"], check=True, env=off)  # fmt: skip
         (d / "cal.json").write_text("{}")
-        jobs = {
-            "reconstruct": ["reconstruct", d / "cc.raw", "--calib", d / "cal.json",
-                            "--out", d / "cube.npz", "--quiet"],  # fmt: skip
-            "calibrate": ["calibrate", d / "gray.npz", "--out", d / "c.json"],
-        }
+        rec = ["reconstruct", d / "cc.raw", "--calib", d / "cal.json", "--out",
+               d / "cube.npz", "--quiet"]  # fmt: skip
+        jobs = {}
+        for b in a.backends.split(","):
+            name = "reconstruct" if b == "default" else f"reconstruct --backend {b}"
+            jobs[name] = rec if b == "default" else [*rec, "--backend", b]
+        jobs["calibrate"] = ["calibrate", d / "gray.npz", "--out", d / "c.json"]
         out = {"size": a.size, "matmul_gflops": matmul_gflops()}
         for name, argv in jobs.items():
-            if name not in a.jobs.split(","):
+            if name.split()[0] not in a.jobs.split(","):
                 continue
             no_cache = timed(argv, off)
             first = timed(argv, env)
@@ -81,6 +94,10 @@ def main() -> None:
                 "cached_runs_s": [round(v, 2) for v in warm],
             }
             print(name, out[name], flush=True)
+        # What numba kept (the CUDA kernel's entries name `make_kernel`'s closure).
+        out["numba_cache_files"] = sorted(
+            f.name for f in (d / "numba").rglob("*") if f.is_file()
+        )  # fmt: skip
     print(json.dumps(out, indent=1))
     Path(a.json).parent.mkdir(parents=True, exist_ok=True)
     Path(a.json).write_text(json.dumps(out, indent=1))

@@ -69,6 +69,9 @@ MAX_REGISTERS = None
 PREFETCH = False
 #: Source lines in the compiled code, for a profiler (`EVHSI_CUDA_LINEINFO=1`).
 LINEINFO = os.environ.get("EVHSI_CUDA_LINEINFO", "") not in ("", "0")
+#: The compiled kernel kept on disk between processes (numba-cuda's cache, for the
+#: default compile options; `EVHSI_CUDA_CACHE=0` turns it off).
+CACHE = os.environ.get("EVHSI_CUDA_CACHE", "1") not in ("", "0")
 #: Rows added to Q per pass (per barrier; the accumulation is written out for 4).
 RB = 4
 
@@ -332,6 +335,13 @@ def make_kernel(m: int, nt: int = THREADS, q_global: bool = False,
     opts = {} if sim or max_registers is None else {"max_registers": max_registers}
     if lineinfo and not sim:
         opts["lineinfo"] = True
+    if CACHE and not sim and not opts:
+        # Kept on disk (numba's cache folder: `__pycache__` beside this module, or
+        # `$NUMBA_CACHE_DIR`), so a new process loads the kernel instead of
+        # compiling it. The entry's key is the function's bytecode, the closure's
+        # contents (m, nt and the device functions) and the GPU's compute
+        # capability, not the compile options: hence only the default options.
+        opts["cache"] = True
 
     @cuda.jit(**opts)
     def kernel(
@@ -786,7 +796,11 @@ def self_check(m: int) -> str | None:
         arrays = (ev, np.zeros((b, 1, m + 1), np.float32), np.full(b, 1e-6, np.float32),
                   np.full(b, m, np.int32))  # fmt: skip
         if not simulated():
-            arrays = tuple(cuda.to_device(a) for a in arrays)
+            # JAX arrays, as the reconstruction passes: the launch then has the same
+            # argument types, so it loads (or compiles) the same kernel entry.
+            import jax
+
+            arrays = jax.block_until_ready(tuple(jax.device_put(a) for a in arrays))
         rows = SimpleNamespace(events=arrays[0], drift=arrays[1], spec_weight=arrays[2])
         x, _, steps = solve_rows(
             rows, arrays[3], spectral_prior_matrix(m, 0.3, "d2"), 1e-9, 1e-6, 48

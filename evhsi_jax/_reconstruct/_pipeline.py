@@ -594,10 +594,10 @@ def reconstruct(
       :mod:`._cuda_kernel` their Gram matrices and box QPs in the GPU's on-chip
       memory, float32, each chunk's rows formed while the kernel solves the one
       before; needs numba's CUDA target, the active-set solver and a float32 rig;
-      on an H100 a warm whole sweep 1.34× faster than jax, after numba's compilation
-      in each process) or `"auto"` (default): fused where it applies and the solve
-      would run on a CPU, else JAX (cuda on a CUDA GPU only with `AUTO_CUDA`, after
-      its self-check).
+      on an H100 a warm whole sweep 1.34× faster than jax; the compiled kernel is
+      kept in numba's disk cache) or `"auto"` (default): fused where it applies and the solve
+      would run on a CPU, else JAX; on a CUDA GPU cuda for calls of at least
+      `AUTO_CUDA_MIN_PIXELS` pixel·sweeps (2^19), after its self-check.
       The fused cube is the float64 solve of the same events (within 0.01° SAM of the
       JAX path run in float64; float32 JAX and cuda differ from both by their
       rounding).
@@ -665,7 +665,7 @@ def reconstruct(
     chunk_pixels, sub_batch = batch_sizes(chunk_pixels, sub_batch, mesh)
     sub = max(1, min(sub_batch, chunk_pixels))
     solve, n_dev = _solve_chunk_stored, 1
-    if _use_cuda(backend, fused, spec, cfg, rig, mesh):
+    if _use_cuda(backend, fused, spec, cfg, rig, mesh, h * w * sweeps):
         solve = _solve_chunk_cuda
     if mesh is not None:
         solve, n_dev = functools.partial(solve_chunk_sharded, mesh), mesh.devices.size
@@ -847,25 +847,36 @@ BACKENDS = ("auto", "jax", "fused", "cuda")
 
 #: Whether `backend="auto"` picks the CUDA kernel on a CUDA GPU where it applies
 #: (numba's CUDA target installed, the active-set solver, a float32 rig, one
-#: device) and where it passes its self-check (`_cuda_kernel.self_check`, once per
-#: process). On an H100 a warm whole 1280×720 sweep takes 0.51 s with it against
-#: 0.68 s with JAX (0.68 s against 1.00 s with the noise model; README, Performance,
-#: "One GPU"), at the same accuracy against a float64 solve. Off all the same: numba
-#: compiles the kernel again in every process (not kept on disk, unlike JAX's
-#: programs with the compilation cache; ~10 s on that H100, estimated from the
-#: cold calls, not timed apart), which costs a one-sweep command more than it
-#: gains. `backend="cuda"` asks for it: many sweeps in one process.
-AUTO_CUDA = False
+#: device), for a call of at least `AUTO_CUDA_MIN_PIXELS` pixel·sweeps, and once it
+#: passes its self-check (`_cuda_kernel.self_check`, once per process). The kernel
+#: is kept in numba's on-disk cache (`_cuda_kernel.CACHE`), so a new process loads it
+#: instead of compiling it; what stays is numba-cuda's own start in each process,
+#: ~1.1 s on an H100's host (its import 0.53 s, its target's set-up 0.59 s, in a
+#: profile). Measured on an H100 (README, Performance, "One GPU"): a warm whole
+#: 1280×720 sweep takes 0.51 s with the kernel and 0.68 s with JAX (0.68 s against
+#: 1.00 s with the noise model), at the same accuracy against a float64 solve; whole
+#: `evhsi reconstruct` processes with both caches filled: 96×144, 6.6 s against
+#: 5.4 s (numba's start); 1280×720, 7.3–8.9 s against 6.2–8.0 s (six runs against
+#: four on two machines: a wash); with the caches off (each process compiles),
+#: 1280×720, 19.4–23.7 s against 23.8–24.7 s.
+AUTO_CUDA = True
+#: The smallest call (pixels × sweeps) for which `auto` takes the CUDA kernel:
+#: small calls lose numba's start; from a 1280×720 sweep on, one call is a wash and
+#: every further call or sweep in the process gains (~0.17 s per 1280×720 sweep),
+#: as does a run that has to compile. 2^19 ≈ 0.52 M pixel·sweeps.
+AUTO_CUDA_MIN_PIXELS = 2**19
 
 
-def _use_cuda(backend, fused, spec, cfg, rig, mesh) -> bool:
+def _use_cuda(backend, fused, spec, cfg, rig, mesh, work=None) -> bool:
     """Whether the chunks go to the CUDA kernel: asked for (`"cuda"`, a `ValueError`
     says why it cannot run), or `"auto"` on a CUDA GPU where it applies when
-    `AUTO_CUDA` (a failed self-check: a warning, and JAX)."""
+    `AUTO_CUDA` and the call's `work` (pixels × sweeps; None: large) is at least
+    `AUTO_CUDA_MIN_PIXELS` (a failed self-check: a warning, and JAX)."""
     if fused or backend not in ("cuda", "auto"):
         return False
+    small = work is not None and work < AUTO_CUDA_MIN_PIXELS
     if backend == "auto" and (
-        not AUTO_CUDA or shard.device_platform(mesh) != "gpu"
+        not AUTO_CUDA or small or shard.device_platform(mesh) != "gpu"
     ):  # fmt: skip
         return False
     try:

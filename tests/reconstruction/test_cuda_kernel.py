@@ -191,7 +191,10 @@ rig = ev.Rig(channels=16)
 spec, cfg = _pipeline.solver_spec("auto"), _pipeline.ProblemConfig()
 shard.device_platform = lambda mesh=None: "gpu"  # as on a CUDA GPU
 ck.why_not = lambda *a: None
-out["auto_default"] = _pipeline._use_cuda("auto", False, spec, cfg, rig, None)
+big, small = _pipeline.AUTO_CUDA_MIN_PIXELS, _pipeline.AUTO_CUDA_MIN_PIXELS - 1
+out["auto_default"] = _pipeline._use_cuda("auto", False, spec, cfg, rig, None, big)
+out["auto_small"] = _pipeline._use_cuda("auto", False, spec, cfg, rig, None, small)
+out["cuda_small"] = _pipeline._use_cuda("cuda", False, spec, cfg, rig, None, small)
 _pipeline.AUTO_CUDA = True
 out["auto_gpu"] = _pipeline._use_cuda("auto", False, spec, cfg, rig, None)
 ck.self_check = lambda m: "RuntimeError: no kernel image"  # a broken CUDA target
@@ -207,11 +210,12 @@ print(json.dumps(out))
 
 
 def test_auto_picks_the_kernel_only_after_its_self_check():
-    """`backend="auto"` on a CUDA GPU (faked here: the simulator) leaves the kernel
-    out by default (`AUTO_CUDA`: numba compiles it in every process); with
-    `AUTO_CUDA` on it takes the kernel once its self-check (a tiny problem with a
-    known answer) passes; a failing check gives a warning naming it and JAX, never
-    an error. `"cuda"` asks for the kernel without the check."""
+    """`backend="auto"` on a CUDA GPU (faked here: the simulator) takes the kernel
+    for a call of at least `AUTO_CUDA_MIN_PIXELS` pixel·sweeps once its self-check
+    (a tiny problem with a known answer) passes, and leaves it out for a smaller
+    call (numba's fixed start would outweigh the gain) or with `AUTO_CUDA` off; a
+    failing check gives a warning naming it and JAX, never an error. `"cuda"` asks
+    for the kernel without the check, at any size."""
     env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1")
     res = subprocess.run([sys.executable, "-c", AUTO], env=env, capture_output=True,
                          text=True, timeout=600)  # fmt: skip
@@ -220,7 +224,9 @@ def test_auto_picks_the_kernel_only_after_its_self_check():
     assert out["check"] is None  # the real kernel, in the simulator, passes
     assert out["check_unwritten"].startswith("wrong answers")
     assert out["check_raises"] == "RuntimeError: CUDA_ERROR_NO_BINARY_FOR_GPU"
-    assert out["auto_default"] is False
+    assert out["auto_default"] is True
+    assert out["auto_small"] is False
+    assert out["cuda_small"] is True
     assert out["auto_gpu"] is True
     assert out["auto_broken"] is False
     assert len(out["warned"]) == 1 and "no kernel image" in out["warned"][0]
