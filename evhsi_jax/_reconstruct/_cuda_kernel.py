@@ -76,6 +76,27 @@ CACHE = os.environ.get("EVHSI_CUDA_CACHE", "1") not in ("", "0")
 RB = 4
 
 
+def _kernel_jit(jit, opts: dict, cache: bool):
+    """`jit(**opts)` as a decorator, with numba's on-disk cache when `cache` (its
+    folder: `__pycache__` beside this module, else `$NUMBA_CACHE_DIR` or numba's
+    user-wide cache folder), so a new process loads the compiled kernel instead of
+    compiling it again. The cache entry's key holds the function's bytecode, the
+    closure's contents (m, nt, the device functions) and the GPU's compute
+    capability, but not the compile options: hence the cache only for the default
+    options. numba refuses `cache=True` (RuntimeError) where no folder is writable:
+    then the kernel is compiled in each process, as without the cache."""
+
+    def wrap(fn):
+        if cache:
+            try:
+                return jit(cache=True, **opts)(fn)
+            except RuntimeError:
+                pass
+        return jit(**opts)(fn)
+
+    return wrap
+
+
 def _u(i):
     """An index as unsigned 32-bit: numba then drops the negative-index wraparound,
     and LLVM narrows the arithmetic whose result is cast so to 32 bits (numba's
@@ -335,15 +356,10 @@ def make_kernel(m: int, nt: int = THREADS, q_global: bool = False,
     opts = {} if sim or max_registers is None else {"max_registers": max_registers}
     if lineinfo and not sim:
         opts["lineinfo"] = True
-    if CACHE and not sim and not opts:
-        # Kept on disk (numba's cache folder: `__pycache__` beside this module, or
-        # `$NUMBA_CACHE_DIR`), so a new process loads the kernel instead of
-        # compiling it. The entry's key is the function's bytecode, the closure's
-        # contents (m, nt and the device functions) and the GPU's compute
-        # capability, not the compile options: hence only the default options.
-        opts["cache"] = True
+    # Kept on disk (see `_kernel_jit`) with the default compile options only.
+    cache = CACHE and not sim and not opts
 
-    @cuda.jit(**opts)
+    @_kernel_jit(cuda.jit, opts, cache)
     def kernel(
         ev, use_w, ev_w, ev_n, drift, spec, spec_first, spec_w, ridge_rel, spec_trace,
         tol, max_iters, qg, out_x, out_kkt, out_steps,

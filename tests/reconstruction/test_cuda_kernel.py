@@ -232,3 +232,32 @@ def test_auto_picks_the_kernel_only_after_its_self_check():
     assert len(out["warned"]) == 1 and "no kernel image" in out["warned"][0]
     assert out["cuda_broken"] is True
     assert out["auto_off"] is False
+
+
+def test_kernel_cache_falls_back_where_numba_cannot_cache():
+    """The kernel asks numba for its on-disk cache only with the default compile
+    options, and where numba refuses the cache (no writable folder: RuntimeError)
+    it is compiled without it instead of failing."""
+    from evhsi_jax._reconstruct._cuda_kernel import _kernel_jit
+
+    calls = []
+
+    def jit(cache=False, **opts):
+        calls.append((cache, opts))
+        if cache and opts.get("refuse"):
+            raise RuntimeError("cannot cache function: no locator available")
+        return lambda fn: ("compiled", fn.__name__, cache)
+
+    def kernel():
+        pass
+
+    assert _kernel_jit(jit, {}, True)(kernel) == ("compiled", "kernel", True)
+    assert _kernel_jit(jit, {"refuse": 1}, True)(kernel) == ("compiled", "kernel", False)
+    assert calls[-2:] == [(True, {"refuse": 1}), (False, {"refuse": 1})]
+    assert _kernel_jit(jit, {"max_registers": 64}, False)(kernel)[2] is False
+    with pytest.raises(ValueError):  # other errors are not swallowed
+
+        def bad(cache=False, **opts):
+            raise ValueError("bad option")
+
+        _kernel_jit(bad, {}, True)(kernel)
