@@ -16,7 +16,11 @@ is then paid once for four pixels. A pixel whose minimiser has a negative channe
 taken out of the lane layout for its active-set steps. With the noise model each pixel
 of the group keeps its event rows and drift part, and the group is assembled and
 solved together again after each photoreceptor pass and reweighting (a pixel whose
-reweighting has converged sits out, its system rebuilt unchanged). `lanes=1` keeps the
+reweighting has converged sits out, its system rebuilt unchanged). The photoreceptor
+pass itself runs the group's pixels side by side where they share a column offset
+(`_lane_lowpass_rows`: each grid point's intensity, decay, logarithm and filter step
+one four-lane operation; the same rows to the last bit as `_lowpass_rows`, which
+serves the other groups and `lanes=1`). `lanes=1` keeps the
 one-pixel path (`_accumulate`, `_assemble`, `_write_answer`), the reference the tests
 compare the lanes with.
 
@@ -958,6 +962,28 @@ def _log_rows(a, src, dst, n):
         a[dst, j] = k * _LN2_HI + (2.0 * s + (2.0 * s * z * p + k * _LN2_LO))
 
 
+@njit(inline=True)
+@no_type_check
+def _lowpass_queries(tr, k, phase, dt, g_n, eta, fq, qpos, qi0, order):
+    """The queries of :func:`_lowpass_rows`: 2i at event i's time, 2i + 1 at its
+    reference, as positions `qpos` on the grid, their grid points `qi0`, their
+    `order` in time; their rows of `fq` zeroed. Returns the grid points F is needed
+    on (up to the last query's grid point + 1)."""
+    nq = 2 * k
+    for i in range(k):
+        t_ref = 0.0 if i == 0 else tr[i - 1] + eta
+        for h, t in ((0, tr[i]), (1, t_ref)):
+            pos = min(max((t + phase) / dt, 0.0), g_n - 1.0)
+            qpos[2 * i + h] = pos
+    g_end = 1
+    for q in range(nq):
+        qi0[q] = min(np.int64(math.floor(qpos[q])), g_n - 2)
+        fq[q, :] = 0.0
+        g_end = max(g_end, qi0[q] + 2)
+    order[:nq] = np.argsort(qpos[:nq], kind="mergesort")
+    return g_end
+
+
 @njit
 @no_type_check
 def _lowpass_rows(
@@ -983,19 +1009,9 @@ def _lowpass_rows(
     g_n = ipar[I_SWEEPS] * n + 1
     d_w = max(par[P_DW], 1e-6)
     eta = par[P_ETA]
-    # Queries: 2i at the event, 2i + 1 at its reference; positions on the grid.
     nq = 2 * k
-    for i in range(k):
-        t_ref = 0.0 if i == 0 else tr[i - 1] + eta
-        for h, t in ((0, tr[i]), (1, t_ref)):
-            pos = min(max((t + phase) / dt, 0.0), g_n - 1.0)
-            qpos[2 * i + h] = pos
-    g_end = 1  # F is needed up to the last query's grid point, g_end - 1
-    for q in range(nq):
-        qi0[q] = min(np.int64(math.floor(qpos[q])), g_n - 2)
-        fq[q, :] = 0.0
-        g_end = max(g_end, qi0[q] + 2)
-    order[:nq] = np.argsort(qpos[:nq], kind="mergesort")
+    # F is needed up to the last query's grid point, g_end - 1
+    g_end = _lowpass_queries(tr, k, phase, dt, g_n, eta, fq, qpos, qi0, order)
     vv[:] = 0.0
     scale = 1.0
     pa = 0
@@ -1078,6 +1094,15 @@ def _lowpass_rows(
             for c in range(_u(vlo + 1), _u(vhi + 1)):
                 row[c] += wq * vv[c]
             pa += 1
+    _lowpass_finish(fq, step, x0, w_log, k, evr, evc, evlo, evhi)
+
+
+@njit(inline=True)
+@no_type_check
+def _lowpass_finish(fq, step, x0, w_log, k, evr, evc, evlo, evhi):
+    """The event rows of :func:`_lowpass_rows` from the filtered values at the
+    queries `fq` (2i: the event, 2i + 1: its reference)."""
+    m = x0.size
     for i in range(k):
         de = fq[2 * i]
         dr = fq[2 * i + 1]
@@ -1101,6 +1126,178 @@ def _lowpass_rows(
         evc[i] = c_row * w
         evlo[i] = min(lo, hi)
         evhi[i] = hi
+
+
+@njit(inline=True)
+@no_type_check
+def _lane_bcast(dst, d, r, a0, a1, a2, a3):
+    """dst[d + l] += a_l r for the four lanes l (loads before stores, as
+    :func:`_lane_update`)."""
+    v0 = dst[d]
+    v1 = dst[d + _u(1)]
+    v2 = dst[d + _u(2)]
+    v3 = dst[d + _u(3)]
+    dst[d] = v0 + a0 * r
+    dst[d + _u(1)] = v1 + a1 * r
+    dst[d + _u(2)] = v2 + a2 * r
+    dst[d + _u(3)] = v3 + a3 * r
+
+
+@njit(slp=True)
+@no_type_check
+def _lane_lowpass_rows(
+    todo, nl, xs, trs, steps, w_logs, ks, phases, par, ipar, cspan, crow, vl, fqs,
+    qposs, qi0s, orders, evrs, evcs, evlos, evhis, lpl, x4, st,
+):  # fmt: skip
+    """:func:`_lowpass_rows` of the group's pixels marked in `todo`, side by side, one
+    per lane: they lie in one column (the fused path hands out pixels column by
+    column), so the band on the grid (`cspan`, `crow`) is theirs alike, and each
+    grid point's intensity, decay, logarithm and filter step is one four-lane
+    operation instead of four loops of the band's span. Each pixel's numbers go
+    through the same operations in the same order as in :func:`_lowpass_rows`, so
+    its rows are the same to the last bit (tests/reconstruction/test_fused.py).
+    Lane l of channel c of V is `vl[4 c + l]`; `x4` holds x0 so; `lpl` is
+    `_lowpass_rows`' `lp_f` with four lanes per grid point; `st` (float64, ≥ 16)
+    work space. The grid runs to the group's last query; a pixel's queries
+    complete where its own would."""
+    m = xs.shape[1]
+    n = ipar[I_SAMPLES]
+    dt = par[P_PERIOD] / n
+    g_n = ipar[I_SWEEPS] * n + 1
+    d_w = max(par[P_DW], 1e-6)
+    eta = par[P_ETA]
+    g_end = 1
+    for lane in range(4):
+        live = lane < nl and todo[lane]
+        for c in range(m):
+            x4[4 * c + lane] = xs[lane, c] if live else 0.0
+        if live:
+            g_end = max(g_end, _lowpass_queries(
+                trs[lane], ks[lane], phases[lane], dt, g_n, eta, fqs[lane],
+                qposs[lane], qi0s[lane], orders[lane],
+            ))  # fmt: skip
+    # The intensity at x0 (each lane's four partial sums, as _lowpass_rows').
+    base_rel = par[P_BASE_REL]
+    jn = 0  # j's point within its sweep (j % n, without a division per point)
+    for j in range(g_end):
+        row = crow[jn]
+        lo = cspan[jn, 0]
+        span = max(cspan[jn, 1] - lo, 0)
+        n4 = span // 4
+        a0 = a1 = a2 = a3 = 0.0  # partial sum 0 of the four lanes
+        b0 = b1 = b2 = b3 = 0.0
+        c0 = c1 = c2 = c3 = 0.0
+        d0 = d1 = d2 = d3 = 0.0
+        for q in range(_u(n4)):
+            c = _u(4) * q
+            v = _u(4) * (_u(lo) + c)
+            r = row[c]
+            a0, a1, a2, a3 = _lane_axpy(a0, a1, a2, a3, x4, v, r, r, r, r)
+            r = row[c + _u(1)]
+            b0, b1, b2, b3 = _lane_axpy(b0, b1, b2, b3, x4, v + _u(4), r, r, r, r)
+            r = row[c + _u(2)]
+            c0, c1, c2, c3 = _lane_axpy(c0, c1, c2, c3, x4, v + _u(8), r, r, r, r)
+            r = row[c + _u(3)]
+            d0, d1, d2, d3 = _lane_axpy(d0, d1, d2, d3, x4, v + _u(12), r, r, r, r)
+        for c in range(_u(4 * n4), _u(span)):
+            r = row[c]
+            a0, a1, a2, a3 = _lane_axpy(
+                a0, a1, a2, a3, x4, _u(4) * (_u(lo) + c), r, r, r, r
+            )  # fmt: skip
+        e = _u(4 * j)
+        lpl[1, e] = max(base_rel + ((a0 + b0) + (c0 + d0)), 0.0)
+        lpl[1, e + _u(1)] = max(base_rel + ((a1 + b1) + (c1 + d1)), 0.0)
+        lpl[1, e + _u(2)] = max(base_rel + ((a2 + b2) + (c2 + d2)), 0.0)
+        lpl[1, e + _u(3)] = max(base_rel + ((a3 + b3) + (c3 + d3)), 0.0)
+        jn = jn + 1 if jn + 1 < n else 0
+    n_all = 4 * g_end
+    log_eps = par[P_LOG_EPS]
+    for j in range(n_all):
+        inten = lpl[1, j]
+        lpl[3, j] = inten + log_eps
+        lpl[1, j] = -dt * inten / d_w
+    _exp_rows(lpl, 1, n_all)
+    for lane in range(4):
+        lpl[1, lane] = 0.0
+    _log_rows(lpl, 3, 2, n_all)
+    for j in range(n_all):
+        lpl[3, j] = 1.0 / lpl[3, j]
+    # The recursion, four lanes at a time (st[0:4]: each lane's running scale S,
+    # st[4:8]: its weight of the band at this point, st[8:12] and st[12:16]: its
+    # next query in `order` that starts, and that completes, at a grid point).
+    for c in range(4 * (m + 1)):
+        vl[c] = 0.0
+    for lane in range(4):
+        st[lane] = 1.0
+        st[8 + lane] = 0.0
+        st[12 + lane] = 0.0
+    vlo = m
+    vhi = 0
+    jn = 0
+    for j in range(g_end):
+        for lane in range(4):
+            alpha = lpl[1, 4 * j + lane]
+            scale = st[lane]
+            if alpha < 1e-200:  # F forgets its past: restart
+                for c in range(m + 1):
+                    vl[4 * c + lane] = 0.0
+                scale = 1.0
+                wgt = 1.0 - alpha
+            else:
+                if scale * alpha < 1e-200:  # renormalise V before S underflows
+                    for c in range(m + 1):
+                        vl[4 * c + lane] *= scale
+                    scale = 1.0
+                scale *= alpha
+                wgt = (1.0 - alpha) / scale
+            st[lane] = scale
+            vl[lane] += wgt * lpl[2, 4 * j + lane]
+            st[4 + lane] = wgt * lpl[3, 4 * j + lane]
+        lo = cspan[jn, 0]
+        hi = cspan[jn, 1]
+        if hi > lo:
+            row = crow[jn]
+            w0, w1, w2, w3 = st[4], st[5], st[6], st[7]
+            for c in range(_u(hi - lo)):
+                _lane_bcast(vl, _u(4) * (_u(lo + 1) + c), row[c], w0, w1, w2, w3)
+            vlo = min(vlo, lo)
+            vhi = max(vhi, hi)
+        jn = jn + 1 if jn + 1 < n else 0
+        for lane in range(nl):
+            if not todo[lane]:
+                continue
+            nq = 2 * ks[lane]
+            qpos = qposs[lane]
+            qi0 = qi0s[lane]
+            order = orders[lane]
+            fq = fqs[lane]
+            scale = st[lane]
+            pb = np.int64(st[12 + lane])
+            while pb < nq and qi0[order[pb]] + 1 == j:
+                qq = order[pb]
+                wq = scale * (qpos[qq] - qi0[qq])
+                row = fq[qq]
+                row[0] += wq * vl[lane]
+                for c in range(_u(vlo + 1), _u(vhi + 1)):
+                    row[c] += wq * vl[_u(4) * c + _u(lane)]
+                pb += 1
+            st[12 + lane] = pb
+            pa = np.int64(st[8 + lane])
+            while pa < nq and qi0[order[pa]] == j:
+                qq = order[pa]
+                wq = scale * (1.0 - (qpos[qq] - qi0[qq]))
+                row = fq[qq]
+                row[0] += wq * vl[lane]
+                for c in range(_u(vlo + 1), _u(vhi + 1)):
+                    row[c] += wq * vl[_u(4) * c + _u(lane)]
+                pa += 1
+            st[8 + lane] = pa
+    for lane in range(nl):
+        if todo[lane]:
+            _lowpass_finish(
+                fqs[lane], steps[lane], xs[lane], w_logs[lane], ks[lane], evrs[lane],
+                evcs[lane], evlos[lane], evhis[lane],
+            )  # fmt: skip
 
 
 @njit
@@ -1363,6 +1560,18 @@ def solve_pixels(
     fu = np.arange(m)
     ptr = np.zeros(m, np.int64)
     fail = np.zeros(LANES, np.bool_)
+    # The photoreceptor pass of a group's pixels of one column side by side
+    # (_lane_lowpass_rows).
+    lane_lp = lowpass and group == LANES
+    ng = group if lane_lp else 1
+    vl = np.zeros(LANES * (m + 1) if lane_lp else 1)
+    fqs = np.zeros((ng, nbuf if lane_lp else 1, m + 1))
+    qposs = np.zeros((ng, nbuf))
+    qi0s = np.zeros((ng, nbuf), np.int64)
+    orders = np.zeros((ng, nbuf), np.int64)
+    lpl = np.zeros((4, LANES * n_grid if lane_lp else 1))
+    x4 = np.zeros(LANES * m)
+    st = np.zeros(16)
     n_ad = sweeps * g if lanes else 1
     adrs = np.zeros((group, n_ad, m) if lanes else (1, 1, 1))
     adlo = np.zeros((group, n_ad), np.int64)
@@ -1611,9 +1820,33 @@ def solve_pixels(
         # The photoreceptor model linearised at the answer replaces the delay-shifted
         # event rows (Gauss–Newton passes).
         for _ in range(lp_passes):
+            col = np.nan  # the group's column offset, if all its pixels share one
             for lane in range(nl):
                 todo[lane] = g_steps[lane] >= 0
+                if todo[lane]:
+                    if col != col:
+                        col = g_off[lane]
+                    elif g_off[lane] != col:
+                        col = np.inf
+            if lane_lp and math.isfinite(col):
+                if not col == col_done:
+                    _column_grid(col, par, ipar, table, span_lo, span_hi, cspan, crow)
+                    col_done = col
+                for lane in range(nl):
+                    if todo[lane]:
+                        _clear_events(evrs[lane], evlos[lane], evhis[lane], g_k[lane])
+                _lane_lowpass_rows(
+                    todo, nl, xs, traws, steps2, wns, g_k, g_phase, par, ipar, cspan,
+                    crow, vl, fqs, qposs, qi0s, orders, evrs, evcs, evlos, evhis, lpl,
+                    x4, st,
+                )  # fmt: skip
+            for lane in range(nl):
                 if not todo[lane]:
+                    continue
+                if lane_lp and math.isfinite(col):  # (formed above)
+                    zz = zzs[lane]
+                    for i in range(g_k[lane]):
+                        zz[i] = 1.0
                     continue
                 k = g_k[lane]
                 _clear_events(evrs[lane], evlos[lane], evhis[lane], k)

@@ -192,6 +192,66 @@ def test_lane_solver_flags_a_failed_lane():
     np.testing.assert_array_equal(xl[3::4], xl[2::4])  # the repeated last system
 
 
+def test_lane_photoreceptor_rows_equal_one_pixel_bit_for_bit():
+    """`_lane_lowpass_rows` (a group's pixels of one column side by side) forms the
+    photoreceptor model's event rows of `_lowpass_rows` to the last bit, for a group
+    of three with one pixel left out (`todo`), pixels of different event counts and
+    lags, and over two sweeps; the pixel left out keeps its rows untouched."""
+    from evhsi_jax._reconstruct import _fused_jit as jit
+
+    rig, w, sweeps = ev.Rig(sensor="realistic"), 8, 2
+    prob = _fused.FusedProblem(
+        rig, _pipeline.channel_table(rig), ProblemConfig(),
+        _pipeline.solver_spec("auto"), w, np.asarray(rig.column_offsets(w)), sweeps,
+        _pipeline.noise_model(rig),
+    )  # fmt: skip
+    par, ipar, m = prob.par, prob.ipar, prob.channels
+    n, period = int(ipar[jit.I_SAMPLES]), par[jit.P_PERIOD]
+    span = prob.span_hi - prob.span_lo
+    w_col = int(max(span.max(), 1)) + 8
+    cspan, crow = np.zeros((n, 2), np.int64), np.zeros((n, w_col))
+    jit._column_grid(
+        float(prob.col_off[3]), par, ipar, prob.table, prob.span_lo, prob.span_hi,
+        cspan, crow,
+    )  # fmt: skip
+    rng = np.random.default_rng(5)
+    g, kmax, nl = 4, 30, 3
+    ks = np.array([30, 17, 24, 0])
+    todo = np.array([True, False, True, False])
+    xs = rng.uniform(0.05, 1.0, (g, m))
+    trs, steps, wl = np.zeros((g, kmax)), np.zeros((g, kmax)), np.zeros((g, kmax))
+    for p in range(g):
+        trs[p, : ks[p]] = np.sort(rng.uniform(0.0, sweeps * period * 0.95, ks[p]))
+        steps[p, : ks[p]] = rng.choice([-0.25, 0.2], ks[p])
+        wl[p, : ks[p]] = rng.uniform(0.3, 1.0, ks[p])
+    phases = rng.uniform(-40.0, 40.0, g)
+    nbuf, n_grid = 2 * kmax, sweeps * n + 1
+
+    def rows():
+        return (np.full((g, kmax, m), 7.0), np.zeros((g, kmax)),
+                np.zeros((g, kmax), np.int64), np.zeros((g, kmax), np.int64))  # fmt: skip
+
+    one, lane = rows(), rows()
+    for p in range(nl):
+        if todo[p]:
+            jit._lowpass_rows(
+                xs[p], trs[p], steps[p], wl[p], ks[p], phases[p], par, ipar, cspan,
+                crow, np.zeros(m + 1), np.zeros((nbuf, m + 1)), np.zeros(nbuf),
+                np.zeros(nbuf, np.int64), np.zeros(nbuf, np.int64), *(a[p] for a in one),
+                np.zeros((4, n_grid)),
+            )  # fmt: skip
+    jit._lane_lowpass_rows(
+        todo, nl, xs, trs, steps, wl, ks, phases, par, ipar, cspan, crow,
+        np.zeros(4 * (m + 1)), np.zeros((g, nbuf, m + 1)), np.zeros((g, nbuf)),
+        np.zeros((g, nbuf), np.int64), np.zeros((g, nbuf), np.int64), *lane,
+        np.zeros((4, 4 * n_grid)), np.zeros(4 * m), np.zeros(16),
+    )  # fmt: skip
+    for a, b in zip(one, lane):
+        np.testing.assert_array_equal(a, b)
+    assert np.all(lane[0][1] == 7.0)  # the pixel left out: untouched
+    assert np.abs(lane[0][0, : ks[0]]).max() > 0  # rows were formed
+
+
 def _fused_lists(rig, events, noise=None, sweeps=2):
     t0 = int(events.trigger_t_us[0])
     screened, _, _ = _pipeline.screen_events(events, rig, t0, noise, sweeps)
