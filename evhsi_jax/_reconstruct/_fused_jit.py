@@ -529,15 +529,12 @@ def _lane_solve(lf, ptr, fu, inv, qv, out, m):
 
 @njit(inline=True)
 @no_type_check
-def _lane_update(dst, d, src, s, a0, a1, a2, a3):
-    """dst[d + l] += a_l src[s + l] for the four lanes l, every load before the first
-    store: `dst` and `src` may be the same array as far as LLVM knows, and with a
-    store between the loads its SLP vectoriser leaves the four lanes scalar (it did
-    in the remainder loops, which run most of the time for rows this short)."""
-    s0 = src[s]
-    s1 = src[s + _u(1)]
-    s2 = src[s + _u(2)]
-    s3 = src[s + _u(3)]
+def _lane_add(dst, d, s0, s1, s2, s3, a0, a1, a2, a3):
+    """dst[d + l] += a_l s_l for the four lanes l, every load before the first store:
+    with a store between the loads LLVM's SLP vectoriser leaves the four lanes
+    scalar (it did in the lane solves' remainder loops, which run most of the time
+    for rows this short), as `dst` and a source array may be the same as far as it
+    knows."""
     v0 = dst[d]
     v1 = dst[d + _u(1)]
     v2 = dst[d + _u(2)]
@@ -546,6 +543,15 @@ def _lane_update(dst, d, src, s, a0, a1, a2, a3):
     dst[d + _u(1)] = v1 + a1 * s1
     dst[d + _u(2)] = v2 + a2 * s2
     dst[d + _u(3)] = v3 + a3 * s3
+
+
+@njit(inline=True)
+@no_type_check
+def _lane_update(dst, d, src, s, a0, a1, a2, a3):
+    """dst[d + l] += a_l src[s + l] for the four lanes l (:func:`_lane_add`)."""
+    _lane_add(
+        dst, d, src[s], src[s + _u(1)], src[s + _u(2)], src[s + _u(3)], a0, a1, a2, a3
+    )  # fmt: skip
 
 
 @njit(inline=True)
@@ -1128,21 +1134,6 @@ def _lowpass_finish(fq, step, x0, w_log, k, evr, evc, evlo, evhi):
         evhi[i] = hi
 
 
-@njit(inline=True)
-@no_type_check
-def _lane_bcast(dst, d, r, a0, a1, a2, a3):
-    """dst[d + l] += a_l r for the four lanes l (loads before stores, as
-    :func:`_lane_update`)."""
-    v0 = dst[d]
-    v1 = dst[d + _u(1)]
-    v2 = dst[d + _u(2)]
-    v3 = dst[d + _u(3)]
-    dst[d] = v0 + a0 * r
-    dst[d + _u(1)] = v1 + a1 * r
-    dst[d + _u(2)] = v2 + a2 * r
-    dst[d + _u(3)] = v3 + a3 * r
-
-
 @njit(slp=True)
 @no_type_check
 def _lane_lowpass_rows(
@@ -1259,7 +1250,8 @@ def _lane_lowpass_rows(
             row = crow[jn]
             w0, w1, w2, w3 = st[4], st[5], st[6], st[7]
             for c in range(_u(hi - lo)):
-                _lane_bcast(vl, _u(4) * (_u(lo + 1) + c), row[c], w0, w1, w2, w3)
+                r = row[c]
+                _lane_add(vl, _u(4) * (_u(lo + 1) + c), r, r, r, r, w0, w1, w2, w3)
             vlo = min(vlo, lo)
             vhi = max(vhi, hi)
         jn = jn + 1 if jn + 1 < n else 0
