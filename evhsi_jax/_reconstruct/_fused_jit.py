@@ -1134,6 +1134,16 @@ def _lowpass_finish(fq, step, x0, w_log, k, evr, evc, evlo, evhi):
         evhi[i] = hi
 
 
+@njit(inline=True)
+@no_type_check
+def _lane_query(row, wq, vl, lane, vlo, vhi):
+    """row += wq F of `lane` (channel 0 and the touched channels [vlo, vhi) of V,
+    lane layout): a query's share of the filtered values (:func:`_lane_lowpass_rows`)."""
+    row[0] += wq * vl[lane]
+    for c in range(_u(vlo + 1), _u(vhi + 1)):
+        row[c] += wq * vl[_u(4) * c + _u(lane)]
+
+
 @njit(slp=True)
 @no_type_check
 def _lane_lowpass_rows(
@@ -1267,21 +1277,14 @@ def _lane_lowpass_rows(
             pb = np.int64(st[12 + lane])
             while pb < nq and qi0[order[pb]] + 1 == j:
                 qq = order[pb]
-                wq = scale * (qpos[qq] - qi0[qq])
-                row = fq[qq]
-                row[0] += wq * vl[lane]
-                for c in range(_u(vlo + 1), _u(vhi + 1)):
-                    row[c] += wq * vl[_u(4) * c + _u(lane)]
+                _lane_query(fq[qq], scale * (qpos[qq] - qi0[qq]), vl, lane, vlo, vhi)
                 pb += 1
             st[12 + lane] = pb
             pa = np.int64(st[8 + lane])
             while pa < nq and qi0[order[pa]] == j:
                 qq = order[pa]
                 wq = scale * (1.0 - (qpos[qq] - qi0[qq]))
-                row = fq[qq]
-                row[0] += wq * vl[lane]
-                for c in range(_u(vlo + 1), _u(vhi + 1)):
-                    row[c] += wq * vl[_u(4) * c + _u(lane)]
+                _lane_query(fq[qq], wq, vl, lane, vlo, vhi)
                 pa += 1
             st[8 + lane] = pa
     for lane in range(nl):
