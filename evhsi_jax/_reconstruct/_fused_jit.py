@@ -970,6 +970,27 @@ def _log_rows(a, src, dst, n):
 
 @njit(inline=True)
 @no_type_check
+def _lowpass_point_terms(a, n, first, dt, d_w, log_eps):
+    """From each grid point's intensity I in `a[1, :n]`: its decay over the step
+    exp(-dt I / d_w) into `a[1]` (0 for the first `first` entries: the grid's first
+    point, of each lane), log(I + ε) into `a[2]` and 1 / (I + ε) into `a[3]`; each
+    in a pass of its own that LLVM vectorises (_exp_rows, _log_rows: libm's scalar
+    calls were ~40 % of the photoreceptor rows' time; row 0 of `a` is their work
+    space)."""
+    for j in range(n):
+        inten = a[1, j]
+        a[3, j] = inten + log_eps
+        a[1, j] = -dt * inten / d_w
+    _exp_rows(a, 1, n)
+    for j in range(first):
+        a[1, j] = 0.0
+    _log_rows(a, 3, 2, n)
+    for j in range(n):
+        a[3, j] = 1.0 / a[3, j]
+
+
+@njit(inline=True)
+@no_type_check
 def _lowpass_queries(tr, k, phase, dt, g_n, eta, fq, qpos, qi0, order):
     """The queries of :func:`_lowpass_rows`: 2i at event i's time, 2i + 1 at its
     reference, as positions `qpos` on the grid, their grid points `qi0`, their
@@ -1043,18 +1064,7 @@ def _lowpass_rows(
             s0 += row[c] * x0[_u(lo) + c]
         inten = par[P_BASE_REL] + ((s0 + s1) + (s2 + s3))
         lp_f[1, j] = max(inten, 0.0)
-    # Its decay over the step, logarithm and reciprocal, each in a pass of its own
-    # that LLVM vectorises (_exp_rows, _log_rows: libm's scalar calls were ~40 % of
-    # this function's time; row 0 of `lp_f` is their work space).
-    for j in range(g_end):
-        inten = lp_f[1, j]
-        lp_f[3, j] = inten + par[P_LOG_EPS]
-        lp_f[1, j] = -dt * inten / d_w
-    _exp_rows(lp_f, 1, g_end)
-    lp_f[1, 0] = 0.0
-    _log_rows(lp_f, 3, 2, g_end)
-    for j in range(g_end):
-        lp_f[3, j] = 1.0 / lp_f[3, j]
+    _lowpass_point_terms(lp_f, g_end, 1, dt, d_w, par[P_LOG_EPS])
     # Then the recursion: V over the band's span, and the queries.
     vlo = m  # channels V has touched: [vlo, vhi)
     vhi = 0
@@ -1151,8 +1161,8 @@ def _lane_lowpass_rows(
     qposs, qi0s, orders, evrs, evcs, evlos, evhis, lpl, x4, st,
 ):  # fmt: skip
     """:func:`_lowpass_rows` of the group's pixels marked in `todo`, side by side, one
-    per lane: they lie in one column (the fused path hands out pixels column by
-    column), so the band on the grid (`cspan`, `crow`) is theirs alike, and each
+    per lane: they share a column offset (the fused path hands out pixels column
+    by column), so the band on the grid (`cspan`, `crow`) is theirs alike, and each
     grid point's intensity, decay, logarithm and filter step is one four-lane
     operation instead of four loops of the band's span. Each pixel's numbers go
     through the same operations in the same order as in :func:`_lowpass_rows`, so
@@ -1211,18 +1221,7 @@ def _lane_lowpass_rows(
         lpl[1, e + _u(2)] = max(base_rel + ((a2 + b2) + (c2 + d2)), 0.0)
         lpl[1, e + _u(3)] = max(base_rel + ((a3 + b3) + (c3 + d3)), 0.0)
         jn = jn + 1 if jn + 1 < n else 0
-    n_all = 4 * g_end
-    log_eps = par[P_LOG_EPS]
-    for j in range(n_all):
-        inten = lpl[1, j]
-        lpl[3, j] = inten + log_eps
-        lpl[1, j] = -dt * inten / d_w
-    _exp_rows(lpl, 1, n_all)
-    for lane in range(4):
-        lpl[1, lane] = 0.0
-    _log_rows(lpl, 3, 2, n_all)
-    for j in range(n_all):
-        lpl[3, j] = 1.0 / lpl[3, j]
+    _lowpass_point_terms(lpl, 4 * g_end, 4, dt, d_w, par[P_LOG_EPS])
     # The recursion, four lanes at a time (st[0:4]: each lane's running scale S,
     # st[4:8]: its weight of the band at this point, st[8:12] and st[12:16]: its
     # next query in `order` that starts, and that completes, at a grid point).
@@ -1823,7 +1822,8 @@ def solve_pixels(
                         col = g_off[lane]
                     elif g_off[lane] != col:
                         col = np.inf
-            if lane_lp and math.isfinite(col):
+            side = lane_lp and math.isfinite(col)  # four lanes side by side
+            if side:
                 if not col == col_done:
                     _column_grid(col, par, ipar, table, span_lo, span_hi, cspan, crow)
                     col_done = col
@@ -1838,23 +1838,20 @@ def solve_pixels(
             for lane in range(nl):
                 if not todo[lane]:
                     continue
-                if lane_lp and math.isfinite(col):  # (formed above)
-                    zz = zzs[lane]
-                    for i in range(g_k[lane]):
-                        zz[i] = 1.0
-                    continue
                 k = g_k[lane]
-                _clear_events(evrs[lane], evlos[lane], evhis[lane], k)
-                if not g_off[lane] == col_done:
-                    _column_grid(
-                        g_off[lane], par, ipar, table, span_lo, span_hi, cspan, crow
+                if not side:  # one pixel at a time
+                    _clear_events(evrs[lane], evlos[lane], evhis[lane], k)
+                    if not g_off[lane] == col_done:
+                        _column_grid(
+                            g_off[lane], par, ipar, table, span_lo, span_hi, cspan,
+                            crow,
+                        )  # fmt: skip
+                        col_done = g_off[lane]
+                    _lowpass_rows(
+                        xs[lane], traws[lane], steps2[lane], wns[lane], k,
+                        g_phase[lane], par, ipar, cspan, crow, vv, fq, qpos, qi0,
+                        order, evrs[lane], evcs[lane], evlos[lane], evhis[lane], lp_f,
                     )  # fmt: skip
-                    col_done = g_off[lane]
-                _lowpass_rows(
-                    xs[lane], traws[lane], steps2[lane], wns[lane], k, g_phase[lane],
-                    par, ipar, cspan, crow, vv, fq, qpos, qi0, order, evrs[lane],
-                    evcs[lane], evlos[lane], evhis[lane], lp_f,
-                )  # fmt: skip
                 zz = zzs[lane]
                 for i in range(k):
                     zz[i] = 1.0
