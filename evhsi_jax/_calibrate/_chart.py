@@ -17,6 +17,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from .._base import call_exported
 from .._model import (
     BandTable,
     EventStream,
@@ -324,8 +325,9 @@ def _log_steps(rig: Rig, data: ChartData, block_events: int = 1 << 20):
                     for k in ("t_us", "polarity", "mask", "column", "pixel", "spectrum")
                 },
             )
+        args = (rig, _device(part, dtype), traces)
         steps = np.asarray(
-            _log_steps_jit(rig, _device(part, dtype), traces), np.float64
+            call_exported("chart_log_steps", _log_steps_jit, args), np.float64
         )
         out.append(steps[: block - pad])
     return np.concatenate(out)

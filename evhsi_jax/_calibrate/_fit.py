@@ -56,6 +56,7 @@ import lineax as lx
 import numpy as np
 import optimistix as optx
 
+from .._base import call_exported
 from .._model import (
     BandTable,
     Calibration,
@@ -107,9 +108,8 @@ def _response_basis(rig: Rig, degree: int) -> np.ndarray:
     the overall scale, which the peak normalisation removes)."""
     g = rig.grid
     u = 2.0 * (g.fine_centres_nm - g.start_nm) / (g.stop_nm - g.start_nm) - 1.0
-    return np.stack(
-        [np.polynomial.legendre.Legendre.basis(j)(u) for j in range(1, degree + 1)]
-    )
+    rows = [np.polynomial.legendre.Legendre.basis(j)(u) for j in range(1, degree + 1)]
+    return np.stack(rows) if rows else np.zeros((0, u.shape[0]))  # 0: D kept
 
 
 BLOCK_EVENTS = 1 << 13  # padded events per block of chart pixels in the fit's passes
@@ -694,6 +694,30 @@ def _jacobi_scale(p0: dict, keep, fit: _FitData) -> dict:
     }
 
 
+def _lm_stage(u, scale, profile, keep, fit, max_steps, verbose):
+    """One Levenberg–Marquardt stage of :func:`_fit_chart_float64` from the scaled
+    start `u`: (its end point, its number of steps, whether it converged). A function
+    of arrays and static values only, so that `call_exported` can keep its traced
+    program on disk: tracing optimistix's solver is most of a small chart's
+    calibration time in a new process."""
+    solver = optx.LevenbergMarquardt(
+        rtol=1e-7,
+        atol=1e-9,
+        # An inexact Gauss–Newton step is enough inside Levenberg–Marquardt.
+        linear_solver=_normal_cg(rtol=1e-4, atol=1e-9),
+        verbose=verbose,
+    )
+    sol = optx.least_squares(
+        _fit_residuals_scaled,
+        solver,
+        u,
+        args=(scale, (profile, keep, fit)),
+        max_steps=max_steps,
+        throw=False,
+    )
+    return sol.value, sol.stats["num_steps"], sol.result == optx.RESULTS.successful
+
+
 def _fit_chart_float64(
     events: EventStream,
     chart: Scene,
@@ -776,27 +800,24 @@ def _fit_chart_float64(
     ones = jnp.ones_like(keep)
 
     def residuals(params, profile, keep):
-        return _fit_residuals(params, profile, keep, fit)
+        args = (params, profile, keep, fit)
+        return call_exported("calibrate_residuals", _fit_residuals, args)
 
     # Jacobi scaling by change of variables (u = θ·s, s = column norms of the Jacobian at
     # the start): the Gauss–Newton matrix then has a unit diagonal and is "identity plus
     # the rank-4 coupling of the global parameters", so the matrix-free CG inside each
     # Levenberg–Marquardt step converges in a few iterations.
-    scale = _jacobi_scale(p0, keep, fit)
+    scale = call_exported("calibrate_scale", _jacobi_scale, (p0, keep, fit))
 
     def rms_of(params, profile):
         kept = np.asarray(keep) > 0
         n = int((data.mask & kept[:, None]).sum())
-        return float(jnp.sqrt(_fit_sum_sq(params, profile, keep, fit) / max(n, 1)))
+        ss = call_exported(
+            "calibrate_sum_sq", _fit_sum_sq, (params, profile, keep, fit)
+        )
+        return float(jnp.sqrt(ss / max(n, 1)))
 
     r0 = rms_of(p0, False)
-    solver = optx.LevenbergMarquardt(
-        rtol=1e-7,
-        atol=1e-9,
-        # An inexact Gauss–Newton step is enough inside Levenberg–Marquardt.
-        linear_solver=_normal_cg(rtol=1e-4, atol=1e-9),
-        verbose=bool(verbose),
-    )
     # Stage 1: one threshold pair for all pixels. Stage 2 (per_pixel): the same fit with
     # every pixel's thresholds profiled out, so per-pixel mismatch cannot bias β, c, τx;
     # the thresholds then follow in closed form and the rig's global pair is their mean.
@@ -804,23 +825,23 @@ def _fit_chart_float64(
     converged = True
     outlier_pixels = 0
     for profile in (False, True) if per_pixel else (False,):
-        sol = optx.least_squares(
-            _fit_residuals_scaled,
-            solver,
-            u,
-            args=(scale, (profile, keep, fit)),
-            max_steps=max_steps,
-            throw=False,
+        stage = (u, scale, profile, keep, fit, max_steps, bool(verbose))
+        # (verbose prints from inside the solve: a host callback, which an exported
+        # program cannot hold)
+        u, n_steps, ok = (
+            _lm_stage(*stage)
+            if verbose
+            else call_exported("calibrate_lm", _lm_stage, stage)
         )
-        steps += int(sol.stats["num_steps"])
-        converged = sol.result == optx.RESULTS.successful
-        u = sol.value
+        steps += int(n_steps)
+        converged = bool(ok)
         params = _unscale(u, scale)
         if not all(bool(jnp.all(jnp.isfinite(v))) for v in jax.tree.leaves(params)):
             raise ValueError("the calibration diverged (non-finite parameters)")
         if verbose:
             print(
-                f"calibrate (profiled={profile}): {sol.result}, rms "
+                f"calibrate (profiled={profile}): "
+                f"{'converged' if converged else 'not converged'}, rms "
                 f"{rms_of(params, profile):.5f}"
             )
         if not profile:

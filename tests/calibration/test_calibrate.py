@@ -114,7 +114,9 @@ def test_gradients_finite_at_hard_points(capture):
     with jax.enable_x64(True):
         rig = _true_rig(baseline_rel=0.0, log_eps=1e-9).astype(jnp.float64)
         data = ev.calibration.chart_data(events, chart, rig, rows_per_label=1)
-        grad = eqx.filter_grad(lambda r: jnp.sum(ev.calibration.chart_residuals(r, data) ** 2))(rig)
+        grad = eqx.filter_grad(
+            lambda r: jnp.sum(ev.calibration.chart_residuals(r, data) ** 2)
+        )(rig)
         assert all(bool(jnp.all(jnp.isfinite(g))) for g in jax.tree.leaves(grad))
 
 
@@ -207,3 +209,49 @@ def test_a_fit_that_did_not_converge_is_refused(capture):
     _, chart, events, _ = capture
     with pytest.raises(ValueError, match="did not converge"):
         ev.calibrate(events, chart, ev.Rig(), rows_per_label=None, max_steps=2)
+
+
+def test_a_second_process_fits_from_stored_programs(capture, fitted, monkeypatch):
+    """With the compilation cache on (this suite's default), the fit's solver stages
+    and passes over the chart are stored programs (`call_exported`): a new process
+    (empty memo, stored files) traces none of them and fits the same rig, bit for
+    bit. (That a stored program's answers are those of the function called directly
+    is `tests/test_cache.py`'s; checked by hand for this calibration too.)"""
+    from evhsi_jax._base import _cache
+    from evhsi_jax._calibrate import _chart, _fit
+
+    if not _cache._ENABLED:
+        pytest.skip("the compilation cache is off (EVHSI_CACHE_DIR=off)")
+    _, chart, events, _ = capture
+    monkeypatch.setattr(_cache, "_EXPORTED", {})  # a new process
+
+    def untraced(*a, **k):
+        raise AssertionError("traced although its program is stored")
+
+    for mod, name in [(_fit, "_lm_stage"), (_fit, "_jacobi_scale"),
+                      (_fit, "_fit_sum_sq"), (_fit, "_fit_residuals"),
+                      (_chart, "_log_steps_jit")]:  # fmt: skip
+        monkeypatch.setattr(mod, name, untraced)
+    again = ev.calibrate(events, chart, ev.Rig(), rows_per_label=None)
+    assert again.steps == fitted.steps
+    for a, b in zip(
+        jax.tree.leaves(again.rig), jax.tree.leaves(fitted.rig), strict=True
+    ):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    np.testing.assert_array_equal(again.threshold_on_map, fitted.threshold_on_map)
+
+
+def test_response_degree_zero_keeps_the_camera_response():
+    """`response_degree=0` (D kept as given) has an empty correction basis."""
+    from evhsi_jax._calibrate import _fit
+
+    rig = _fit._with_column_offsets(ev.Rig(), W)
+    basis = _fit._response_basis(rig, 0)
+    assert basis.shape == (0, rig.grid.fine_centres_nm.shape[0])
+    zero = jnp.zeros(())
+    params = {"log_on": zero, "log_off": zero, "log_beta": zero, "log_c": zero,
+              "tau": jnp.zeros((W,)), "resp": jnp.zeros((0,))}  # fmt: skip
+    np.testing.assert_array_equal(
+        np.asarray(_fit._apply(params, rig, basis).camera_response),
+        np.asarray(rig.camera_response),
+    )
