@@ -19,7 +19,13 @@ def test_calibration_measures_noise_and_hot_pixels():
     assert res.converged
 
 
-def test_calibration_fits_curvature():
+def test_calibration_fits_curvature(monkeypatch):
+    """(Run with the cache of traced programs off: this fit is the suite's check of
+    the path a Python user takes without `enable_compilation_cache`, where the
+    solver stages are called directly instead of through `call_exported`.)"""
+    from evhsi_jax._base import _cache
+
+    monkeypatch.setattr(_cache, "_ENABLED", [])  # call_exported: a plain call
     chart = ev.load_scene("gray-chart", (24, 32))
     events = ev.simulate(chart, ev.Rig(sweep_curvature_nm=3.0), sweeps=2, key=jr.key(6))
     res = ev.calibrate(events, chart, ev.Rig())
