@@ -1011,6 +1011,18 @@ def _lowpass_queries(tr, k, phase, dt, g_n, eta, fq, qpos, qi0, order):
     return g_end
 
 
+@njit(inline=True)
+@no_type_check
+def _lowpass_query(row, wq, v, lane, lanes, vlo, vhi):
+    """row += wq F: a query's share of the filtered values, from channel 0 and the
+    touched channels [vlo, vhi) of V (zero elsewhere). Channel c of V is
+    `v[lanes c + lane]`: `lanes=1, lane=0` for :func:`_lowpass_rows`' V, 4 for the
+    lane layout of :func:`_lane_lowpass_rows`."""
+    row[0] += wq * v[lane]
+    for c in range(_u(vlo + 1), _u(vhi + 1)):
+        row[c] += wq * v[_u(lanes) * c + _u(lane)]
+
+
 @njit
 @no_type_check
 def _lowpass_rows(
@@ -1096,19 +1108,12 @@ def _lowpass_rows(
         # (V is zero outside channel 0 and the touched channels).
         while pb < nq and qi0[order[pb]] + 1 == j:
             qq = order[pb]
-            wq = scale * (qpos[qq] - qi0[qq])
-            row = fq[qq]
-            row[0] += wq * vv[0]
-            for c in range(_u(vlo + 1), _u(vhi + 1)):
-                row[c] += wq * vv[c]
+            _lowpass_query(fq[qq], scale * (qpos[qq] - qi0[qq]), vv, 0, 1, vlo, vhi)
             pb += 1
         while pa < nq and qi0[order[pa]] == j:
             qq = order[pa]
             wq = scale * (1.0 - (qpos[qq] - qi0[qq]))
-            row = fq[qq]
-            row[0] += wq * vv[0]
-            for c in range(_u(vlo + 1), _u(vhi + 1)):
-                row[c] += wq * vv[c]
+            _lowpass_query(fq[qq], wq, vv, 0, 1, vlo, vhi)
             pa += 1
     _lowpass_finish(fq, step, x0, w_log, k, evr, evc, evlo, evhi)
 
@@ -1142,16 +1147,6 @@ def _lowpass_finish(fq, step, x0, w_log, k, evr, evc, evlo, evhi):
         evc[i] = c_row * w
         evlo[i] = min(lo, hi)
         evhi[i] = hi
-
-
-@njit(inline=True)
-@no_type_check
-def _lane_query(row, wq, vl, lane, vlo, vhi):
-    """row += wq F of `lane` (channel 0 and the touched channels [vlo, vhi) of V,
-    lane layout): a query's share of the filtered values (:func:`_lane_lowpass_rows`)."""
-    row[0] += wq * vl[lane]
-    for c in range(_u(vlo + 1), _u(vhi + 1)):
-        row[c] += wq * vl[_u(4) * c + _u(lane)]
 
 
 @njit(slp=True)
@@ -1276,14 +1271,16 @@ def _lane_lowpass_rows(
             pb = np.int64(st[12 + lane])
             while pb < nq and qi0[order[pb]] + 1 == j:
                 qq = order[pb]
-                _lane_query(fq[qq], scale * (qpos[qq] - qi0[qq]), vl, lane, vlo, vhi)
+                _lowpass_query(
+                    fq[qq], scale * (qpos[qq] - qi0[qq]), vl, lane, 4, vlo, vhi
+                )
                 pb += 1
             st[12 + lane] = pb
             pa = np.int64(st[8 + lane])
             while pa < nq and qi0[order[pa]] == j:
                 qq = order[pa]
                 wq = scale * (1.0 - (qpos[qq] - qi0[qq]))
-                _lane_query(fq[qq], wq, vl, lane, vlo, vhi)
+                _lowpass_query(fq[qq], wq, vl, lane, 4, vlo, vhi)
                 pa += 1
             st[8 + lane] = pa
     for lane in range(nl):
