@@ -42,6 +42,7 @@ import concurrent.futures
 import numpy as np
 
 from .._base import numba_available, shard
+from .._base._numba import readonly
 from .._model import Rig
 from ._problem import (
     INT_TARGETS,
@@ -148,15 +149,20 @@ class FusedProblem:
 
 def kernel_inputs(prob: FusedProblem, starts, use, t_sorted, s_sorted, lead, thr_on,
                   thr_off) -> tuple:  # fmt: skip
-    """The arguments of the kernel's `solve_pixels` between `sel` and the outputs."""
+    """The arguments of the kernel's `solve_pixels` between `sel` and the outputs,
+    each a contiguous *read-only* array (`readonly`): numba compiles one version of
+    the kernel per argument type, and an array's writeable flag is part of its type.
+    NumPy views of JAX arrays (a float64 rig's band table, its offsets) are read-only
+    while copies are not, so without this a float64 reconstruction compiled the whole
+    kernel a second time (~20 s on a clean clone)."""
+    f, i = np.float64, np.int64
     return (
-        np.ascontiguousarray(starts, np.int64), np.ascontiguousarray(use, np.int64),
-        np.ascontiguousarray(t_sorted, np.float64),
-        np.ascontiguousarray(s_sorted, np.int8), np.ascontiguousarray(lead, np.float64),
-        prob.col_off, np.int64(prob.width), np.ascontiguousarray(thr_on, np.float64),
-        np.ascontiguousarray(thr_off, np.float64), prob.table, prob.tabsum,
-        prob.span_lo, prob.span_hi, prob.spec, prob.spec_first, prob.dark, prob.par,
-        prob.ipar,
+        readonly(starts, i), readonly(use, i), readonly(t_sorted, f),
+        readonly(s_sorted, np.int8), readonly(lead, f), readonly(prob.col_off, f),
+        np.int64(prob.width), readonly(thr_on, f), readonly(thr_off, f),
+        readonly(prob.table, f), readonly(prob.tabsum, f), readonly(prob.span_lo, i),
+        readonly(prob.span_hi, i), readonly(prob.spec, f), readonly(prob.spec_first, i),
+        readonly(prob.dark, f), readonly(prob.par, f), readonly(prob.ipar, i),
     )  # fmt: skip
 
 
@@ -189,6 +195,7 @@ def solve_fused(
     if prob.lowpass and n > 1:  # column by column (see FusedProblem.lowpass)
         by_col = np.argsort(sel % prob.width, kind="stable")
         sel, back = sel[by_col], by_col
+    sel = readonly(sel, np.int64)  # (one kernel type: see kernel_inputs)
 
     def run(lo):
         hi = min(lo + BLOCK_PIXELS, n)

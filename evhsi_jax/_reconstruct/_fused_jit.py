@@ -1007,7 +1007,9 @@ def _lowpass_queries(tr, k, phase, dt, g_n, eta, fq, qpos, qi0, order):
         qi0[q] = min(np.int64(math.floor(qpos[q])), g_n - 2)
         fq[q, :] = 0.0
         g_end = max(g_end, qi0[q] + 2)
-    order[:nq] = np.argsort(qpos[:nq], kind="mergesort")
+    srt = np.argsort(qpos[:nq], kind="mergesort")
+    for q in range(nq):  # (a loop: an array assignment would compile numba's
+        order[q] = srt[q]  # shape-mismatch error path, ~3 s on a clean clone)
     return g_end
 
 
@@ -1380,9 +1382,11 @@ def _solve_group(
     tol = par[P_TOL]
     if qms.shape[0] == 1:
         if todo[0]:
+            # have_x = bool(0): typed bool as at the call below, not the literal
+            # False (numba would compile _box_qp twice, ~2.5 s on a clean clone).
             steps[0] = _box_qp(
                 qms[0], qvs[0], firsts[0], free, lf, inv, xs[0], p, gr, tol,
-                max_iters, False,
+                max_iters, bool(0),
             )  # fmt: skip
         return
     _solve_lanes(ql, qvl, fu, ptr, lfl, invl, xl, fail, m)
