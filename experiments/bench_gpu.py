@@ -30,7 +30,7 @@ of `--repeats` warm runs in this process after one cold run (compilation):
 
     python experiments/bench_gpu.py [--size 720x1280] [--repeats 3] [--out PATH]
         [--cases ideal,noise,realistic] [--batch-variants 65536x65536,262144x262144]
-        [--backends jax,cuda] [--whole-only] [--no-float64] [--profile N]
+        [--backends jax,cuda] [--base-backend jax|cuda] [--whole-only] [--no-float64] [--profile N]
 
 Writes `experiments/results/bench_gpu.json` (or `--out`). On a CPU use a small
 `--size` (the full sensor takes minutes there); the GPU figures in the README were
@@ -173,6 +173,11 @@ def main():
         "--backends", default="", help="also time the whole call with these (jax,cuda)"
     )
     ap.add_argument(
+        "--base-backend",
+        default="jax",
+        help="the backend of each case's first whole call (jax, or cuda to skip JAX's)",
+    )
+    ap.add_argument(
         "--whole-only",
         action="store_true",
         help="time the whole calls only (no parts, no host grouping)",
@@ -249,7 +254,7 @@ def main():
     for name, (cal, events_c, maps_c) in cases.items():
         whole_only = args.whole_only or name == "realistic path"
 
-        def rec(cal=cal, backend="jax", events_c=events_c, maps_c=maps_c):
+        def rec(cal=cal, backend=args.base_backend, events_c=events_c, maps_c=maps_c):
             return ev.reconstruct(
                 events_c, cal, threshold_on_map=maps_c[0], threshold_off_map=maps_c[1],
                 backend=backend,
