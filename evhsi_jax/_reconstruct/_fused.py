@@ -41,8 +41,7 @@ import concurrent.futures
 
 import numpy as np
 
-from .._base import numba_available, shard
-from .._base._numba import readonly
+from .._base import numba_available, readonly, shard
 from .._model import Rig
 from ._problem import (
     INT_TARGETS,
