@@ -96,7 +96,8 @@ def pixel_lists(x, y, t_us, p, width, n_pix, t_start_us, centre):
     _slice_distribute(x, y, t_us, p, width, t_start_us, centre, edge[:n_blocks].copy(),
                       t_out, s_out, local)  # fmt: skip
     # Pass 3: within each block, each event to its pixel's next slot.
-    _blocks_place(0, n_blocks, edge, starts.copy(), t_out, s_out, local)
+    # (np.int64(0), not the literal 0: one compiled _blocks_place for both callers)
+    _blocks_place(np.int64(0), n_blocks, edge, starts.copy(), t_out, s_out, local)
     return counts, starts, t_out, s_out
 
 

@@ -575,6 +575,7 @@ def test_compiled_scan_matches_the_xla_scan(reset_mode, noisy):
     """`_scan_jit.events_scan` crosses where `exact_events_scan` does: the same steps,
     pixels and polarities, times equal to float32 rounding, the same final state."""
     pytest.importorskip("numba")
+    from evhsi_jax._base import readonly
     from evhsi_jax._model._sensor import exact_events_scan, initial_state
     from evhsi_jax._simulate._scan_jit import events_scan
 
@@ -593,9 +594,12 @@ def test_compiled_scan_matches_the_xla_scan(reset_mode, noisy):
         reference_noise=jnp.asarray(noise) if noisy else None,
     )  # fmt: skip
     r, t_free, pend = (np.array(a) for a in initial_state(jnp.asarray(log_i[0])))
+    # The inputs read-only, as the simulator passes them (one compiled kernel).
+    ro = lambda a: readonly(a, np.float32)  # noqa: E731
     step, pix, t_ev, up_ev, n = events_scan(
-        log_i, t, on, off, eta, r, t_free, pend, reset_mode == "release",
-        noise if noisy else np.zeros((1, 1), np.float32), noisy, nt * p,
+        ro(log_i), ro(t), ro(on), ro(off), eta, r, t_free, pend,
+        reset_mode == "release", ro(noise if noisy else np.zeros((1, 1))), noisy,
+        nt * p,
     )  # fmt: skip
     s_ref, p_ref = np.nonzero(np.asarray(fired))
     assert n == s_ref.size > 100

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import evhsi_jax as ev
-from evhsi_jax._base._numba import numba_available
+from evhsi_jax._base._numba import numba_available, readonly
 from evhsi_jax._reconstruct import ProblemConfig, _fused, _pipeline
 
 pytestmark = pytest.mark.skipif(not numba_available(), reason="numba is not available")
@@ -205,13 +205,17 @@ def test_lane_photoreceptor_rows_equal_one_pixel_bit_for_bit():
         _pipeline.solver_spec("auto"), w, np.asarray(rig.column_offsets(w)), sweeps,
         _pipeline.noise_model(rig),
     )  # fmt: skip
-    par, ipar, m = prob.par, prob.ipar, prob.channels
+    # The kernel's inputs as the kernel gets them (read-only: the same compiled
+    # helpers as the kernel's, not a second version of each).
+    ro = {k: readonly(getattr(prob, k), getattr(prob, k).dtype)
+          for k in ("par", "ipar", "table", "span_lo", "span_hi")}  # fmt: skip
+    par, ipar, m = ro["par"], ro["ipar"], prob.channels
     n, period = int(ipar[jit.I_SAMPLES]), par[jit.P_PERIOD]
     span = prob.span_hi - prob.span_lo
     w_col = int(max(span.max(), 1)) + 8
     cspan, crow = np.zeros((n, 2), np.int64), np.zeros((n, w_col))
     jit._column_grid(
-        float(prob.col_off[3]), par, ipar, prob.table, prob.span_lo, prob.span_hi,
+        float(prob.col_off[3]), par, ipar, ro["table"], ro["span_lo"], ro["span_hi"],
         cspan, crow,
     )  # fmt: skip
     rng = np.random.default_rng(5)
