@@ -8,8 +8,9 @@ the working tree) runs once per round, alternately, for `--repeats` rounds after
 warm-up call each, on every usable core (SciPy's FFT workers).
 
 Printed and written: the seconds of each round, their medians, the median of the
-per-round ratios, the largest difference between the two answers, the same run's
-float32 matmul GFLOP/s.
+per-round ratios, the largest difference between the two answers, each version's
+peak of allocated memory during one call (`tracemalloc`, which sees NumPy's
+buffers; beside the input cube), the same run's float32 matmul GFLOP/s.
 
     python experiments/bench_deblur_ab.py --old 20ed699 [--size 720x1280]
         [--repeats 5] [--out PATH]
@@ -23,6 +24,7 @@ import statistics
 import subprocess
 import tempfile
 import time
+import tracemalloc
 from pathlib import Path
 
 import numpy as np
@@ -60,6 +62,12 @@ def main():
     sigma = 0.5
     a = old.deblur_cube(cube, sigma)
     b = new.deblur_cube(cube, sigma)
+    peak_mb = {}
+    for key, mod in (("old", old), ("new", new)):
+        tracemalloc.start()
+        mod.deblur_cube(cube, sigma)
+        peak_mb[key] = tracemalloc.get_traced_memory()[1] / 1e6
+        tracemalloc.stop()
     times = {"old": [], "new": []}
     for _ in range(args.repeats):
         for key, mod in (("old", old), ("new", new)):
@@ -75,6 +83,7 @@ def main():
             o / n for o, n in zip(times["old"], times["new"])
         ),
         "max_abs_diff": float(np.abs(a - b).max()),
+        "peak_mb": peak_mb,
         "matmul_gflops_f32": matmul_gflops(),
     }
     print({k: v for k, v in report.items() if k != "times_s"}, flush=True)
