@@ -10,6 +10,14 @@ calibrating process alone, not the simulation), the Levenberg–Marquardt steps 
 parameter errors against the truth, with the same machine's float32 matmul GFLOP/s.
 Writes `calib/out/bench_calibration_<H>x<W>.json`.
 
+`--sensor realistic`: the capture from a sensor with the `realistic` preset's effects
+on (threshold noise, jitter, a 10 kHz photoreceptor, noise events, hot pixels, ON/OFF
+correlation, latency, a 0.5 px PSF, a skewed band, sweep curvature, rate jitter), and
+`evhsi calibrate --init` given what such a user knows of the hardware (the
+photoreceptor cut-off and the band profile, as `experiments/realism.py`): the path
+a real rig's calibration takes (the chart's traces through the low-pass, the noise
+and PSF measurements). Writes `..._realistic.json`.
+
 Run: `.venv/bin/python calib/bench_calibration.py --width 1280` (~4 min on 2 cores);
 `--height 720 --width 1280` for a full sensor (~10 min, ~40 M events).
 """
@@ -35,11 +43,13 @@ sys.path.insert(0, str(HERE.parent / "experiments"))
 from _common import matmul_gflops  # noqa: E402  (the studies' one copy)
 
 
-def run_cli(events_path: Path, out: Path, cache: Path, rows: int) -> dict:
+def run_cli(events_path: Path, out: Path, cache: Path, rows: int, init=None) -> dict:
     """One `evhsi calibrate` process: wall time and its peak resident memory."""
     env = {**os.environ, "EVHSI_CACHE_DIR": str(cache)}
     cmd = [sys.executable, "-m", "evhsi_jax.cli", "calibrate", str(events_path),
            "--chart", "gray-chart", "--out", str(out), "--rows-per-patch", str(rows)]  # fmt: skip
+    if init is not None:
+        cmd += ["--init", str(init)]
     t0 = time.perf_counter()
     with tempfile.TemporaryFile("w+") as err:
         proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=err)
@@ -57,10 +67,23 @@ def main():
     ap.add_argument("--height", type=int, default=48)
     ap.add_argument("--rows-per-patch", type=int, default=4)
     ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--sensor", default="ideal", choices=["ideal", "realistic"])
     args = ap.parse_args()
     cfg = json.loads((HERE / "config.json").read_text())
     h, w = args.height, args.width
     truth = true_rig(cfg, w, HERE)
+    init = None
+    if args.sensor == "realistic":
+        from evhsi_jax._model._rig import SENSOR_PRESETS
+
+        truth = ev.Rig.from_dict({**truth.to_dict(), **SENSOR_PRESETS["realistic"]})
+        init = {  # what the user knows: the photoreceptor cut-off, the band profile
+            "photoreceptor_hz": float(truth.effects.photoreceptor_hz),
+            "band_profile": {
+                "offset_nm": [float(v) for v in truth.band_profile[0]],
+                "values": [float(v) for v in truth.band_profile[1]],
+            },
+        }
     chart = ev.load_scene("gray-chart", (h, w))
     t0 = time.perf_counter()
     events, sim = ev.simulate(chart, truth, sweeps=2, key=jr.key(3), return_info=True)
@@ -73,8 +96,14 @@ def main():
         events_path = Path(tmp) / "chart.npz"
         ev.write_events(events_path, events)
         cache, cal_path = Path(tmp) / "cache", Path(tmp) / "calib.json"
+        init_path = None
+        if init is not None:
+            init_path = Path(tmp) / "init.json"
+            init_path.write_text(json.dumps(init))
         for _ in range(args.repeats):
-            runs.append(run_cli(events_path, cal_path, cache, args.rows_per_patch))
+            runs.append(
+                run_cli(events_path, cal_path, cache, args.rows_per_patch, init_path)
+            )
             print(runs[-1], flush=True)
         cal = ev.load_calibration(cal_path)
     rig = cal.rig
@@ -82,7 +111,9 @@ def main():
     true_vals = true_values(truth, sim)
     out = {
         "command": f"python calib/bench_calibration.py --width {w} --height {h} "
-        f"--rows-per-patch {args.rows_per_patch} --repeats {args.repeats}",
+        f"--rows-per-patch {args.rows_per_patch} --repeats {args.repeats} "
+        f"--sensor {args.sensor}",
+        "sensor": args.sensor,
         "size": [h, w],
         "events": len(events),
         "events_used": report.get("events_used"),
@@ -96,7 +127,8 @@ def main():
         "tau_rms_error_us": rms(rig.column_offsets_us, truth.column_offsets(w)),
         "threshold_map_rms": rms(cal.threshold_on, sim.threshold_on),
     }
-    path = outdir / f"bench_calibration_{h}x{w}.json"
+    suffix = "" if args.sensor == "ideal" else f"_{args.sensor}"
+    path = outdir / f"bench_calibration_{h}x{w}{suffix}.json"
     path.write_text(json.dumps(out, indent=1) + "\n")
     print(json.dumps(out, indent=1))
 
