@@ -192,8 +192,11 @@ def solve_fused(
     sel = np.ascontiguousarray(sel, np.int64)
     back = None
     if prob.lowpass and n > 1:  # column by column (see FusedProblem.lowpass)
-        by_col = np.argsort(sel % prob.width, kind="stable")
-        sel, back = sel[by_col], by_col
+        col = sel % prob.width
+        if np.any(col[1:] < col[:-1]):  # (a caller may hand them over in that order:
+            # then no answer is moved back, `reconstruct`'s case)
+            by_col = np.argsort(col, kind="stable")
+            sel, back = sel[by_col], by_col
     sel = readonly(sel, np.int64)  # (one kernel type: see kernel_inputs)
 
     def run(lo):
