@@ -145,6 +145,18 @@ class FusedProblem:
         self.col_off = np.ascontiguousarray(column_offsets_us, np.float64)
         self.channels = m
 
+    def kernel_order(self, sel: np.ndarray) -> np.ndarray | None:
+        """The permutation that puts the flat pixel indices `sel` in the order the
+        kernel takes them — column by column, stable, when the photoreceptor rows run
+        (`lowpass`) — or None when `sel` already is in it (a caller that lists its
+        pixels so gets its answers without their being moved back)."""
+        if not self.lowpass or sel.size < 2:
+            return None
+        col = sel % self.width
+        if not np.any(col[1:] < col[:-1]):
+            return None
+        return np.argsort(col, kind="stable")
+
 
 def kernel_inputs(prob: FusedProblem, starts, use, t_sorted, s_sorted, lead, thr_on,
                   thr_off) -> tuple:  # fmt: skip
@@ -190,13 +202,9 @@ def solve_fused(
     steps = np.empty(n, np.int64)
     args = kernel_inputs(prob, starts, use, t_sorted, s_sorted, lead, thr_on, thr_off)
     sel = np.ascontiguousarray(sel, np.int64)
-    back = None
-    if prob.lowpass and n > 1:  # column by column (see FusedProblem.lowpass)
-        col = sel % prob.width
-        if np.any(col[1:] < col[:-1]):  # (a caller may hand them over in that order:
-            # then no answer is moved back, `reconstruct`'s case)
-            by_col = np.argsort(col, kind="stable")
-            sel, back = sel[by_col], by_col
+    back = prob.kernel_order(sel)  # (see FusedProblem.lowpass)
+    if back is not None:
+        sel = sel[back]
     sel = readonly(sel, np.int64)  # (one kernel type: see kernel_inputs)
 
     def run(lo):

@@ -154,6 +154,34 @@ def test_lanes_equal_one_pixel_at_a_time_noise_aware():
     _assert_same_answers(_lanes_1_and_4(rig, events, info, 1))
 
 
+def test_photoreceptor_path_answers_in_the_callers_order():
+    """With the photoreceptor rows the kernel takes the pixels column by column
+    (`FusedProblem.kernel_order`); pixels handed over in image order get their
+    answers moved back, pixels already in column order (`reconstruct`'s case) none:
+    the same answer per pixel either way, bit for bit."""
+    h, w = SIZE
+    rig = ev.Rig(sensor="realistic")
+    scene = ev.load_scene("colorchecker", SIZE)
+    events, info = ev.simulate(scene, rig, sweeps=1, key=jr.key(7), return_info=True)
+    noise = _pipeline.noise_model(rig)
+    counts, starts, t, s = _fused_lists(rig, events, noise, 1)
+    prob = _fused.FusedProblem(
+        rig, _pipeline.channel_table(rig), ProblemConfig(),
+        _pipeline.solver_spec("auto"), w, np.asarray(rig.column_offsets(w)), 1, noise,
+    )  # fmt: skip
+    sel = np.flatnonzero(counts)
+    order = prob.kernel_order(sel)
+    assert prob.lowpass and order is not None
+    assert prob.kernel_order(sel[order]) is None  # already in the kernel's order
+    args = (starts, counts, t, s, np.zeros(h * w), info.threshold_on.reshape(-1),
+            info.threshold_off.reshape(-1))  # fmt: skip
+    x, kkt, steps = _fused.solve_fused(prob, sel, *args, threads=1)
+    xc, kktc, stepsc = _fused.solve_fused(prob, sel[order], *args, threads=1)
+    np.testing.assert_array_equal(x[order], xc)
+    np.testing.assert_array_equal(kkt[order], kktc)
+    np.testing.assert_array_equal(steps[order], stepsc)
+
+
 def test_lane_solver_flags_a_failed_lane():
     """`_solve_lanes` on three systems with different envelopes, in the lane layout
     over their union envelope (the fourth lane repeats the third): each lane's answer
