@@ -6,6 +6,7 @@ import json
 import os
 import platform
 import statistics
+import subprocess
 import time
 from pathlib import Path
 
@@ -16,6 +17,18 @@ import numpy as np
 import evhsi_jax as ev
 
 OUT = Path(__file__).parent / "results"
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def source_at(rev: str | None, path: str) -> str:
+    """The text of the repository file `path` at git revision `rev` (None: the
+    working tree), for the studies that time two revisions in one process."""
+    if rev is None:
+        return (ROOT / path).read_text()
+    return subprocess.run(
+        ["git", "show", f"{rev}:{path}"], cwd=ROOT, check=True, capture_output=True,
+        text=True,
+    ).stdout  # fmt: skip
 
 
 def median_time(fn, repeats: int) -> float:

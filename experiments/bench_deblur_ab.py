@@ -21,24 +21,22 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import statistics
-import subprocess
 import tempfile
 import time
 import tracemalloc
 from pathlib import Path
 
 import numpy as np
-from _common import matmul_gflops, write_json
+from _common import matmul_gflops, source_at, write_json
 
 from evhsi_jax._reconstruct import _deblur as new
 from evhsi_jax.forward import parse_size
 
 
 def _old_module(rev: str):
-    src = subprocess.run(
-        ["git", "show", f"{rev}:evhsi_jax/_reconstruct/_deblur.py"],
-        capture_output=True, text=True, check=True,
-    ).stdout  # fmt: skip
+    """`_deblur` at revision `rev`, loaded as a module of the package (its relative
+    imports resolve) under another name."""
+    src = source_at(rev, "evhsi_jax/_reconstruct/_deblur.py")
     path = Path(tempfile.mkdtemp()) / "old_deblur.py"
     path.write_text(src)
     spec = importlib.util.spec_from_file_location(

@@ -30,14 +30,13 @@ import argparse
 import importlib.util
 import json
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
-from _common import matmul_gflops
+from _common import matmul_gflops, source_at
 from _kernel_setup import fused_inputs
 
 from evhsi_jax._reconstruct import _fused
@@ -61,13 +60,7 @@ def load_kernel(source: str, name: str, folder: Path):
 
 def kernel_source(rev: str | None) -> str:
     """The kernel's source at git revision `rev` (None: the working tree)."""
-    root = Path(__file__).resolve().parent.parent
-    if rev is None:
-        return (root / KERNEL).read_text()
-    return subprocess.run(
-        ["git", "show", f"{rev}:{KERNEL}"], cwd=root, check=True,
-        capture_output=True, text=True,
-    ).stdout  # fmt: skip
+    return source_at(rev, KERNEL)
 
 
 def setup_args(doc: str, sensor: str) -> argparse.ArgumentParser:
