@@ -385,13 +385,31 @@ def _solve_chunk_cuda(rig, table, cfg, spec, sub, px, sweeps, noise=None):
         return x, kkt
     if sweeps <= 4 and float(noise[2]) > 0:
         for _ in range(cfg.lowpass_passes):
-            rows, n = _chunk_rows(rig, table, cfg, px, sweeps, noise, x)
+            if cfg.lookup_order == 1:  # the photoreceptor rows by a kernel too
+                rows = rows._replace(events=_lowpass_rows_cuda(rig, table, noise,
+                                                               sweeps, px, n, rows, x))
+            else:
+                rows, n = _chunk_rows(rig, table, cfg, px, sweeps, noise, x)
             x, kkt = solve(rows, n)
     for _ in range(cfg.robust_steps):
         u, any_big = _chunk_huber(cfg, rows, px.mask, x)
         if bool(any_big):
             x, kkt = solve(rows, n, u)
     return x, kkt
+
+
+def _lowpass_rows_cuda(rig, table, noise, sweeps, px, n, rows, x):
+    """The photoreceptor model's event rows linearised at `x` (JAX `(B, M)`) by the
+    kernel of :mod:`._cuda_lowpass` — `_chunk_rows(..., x0=x)`'s `events` without
+    JAX's `(B, grid, M+1)` scan — as a JAX array. It runs on numba's stream: the
+    next kernel launch there sees it; the solve after it waits for both."""
+    from . import _cuda_kernel as ck
+    from . import _cuda_lowpass as cl
+
+    par, g_n = cl.lowpass_params(rig, table, noise, sweeps)
+    jax.block_until_ready((px, n, rows.log_weight, x, table.values))
+    out = cl.lowpass_rows(px, n, rows.log_weight, x, table.values, par, g_n)
+    return ck.to_jax(out)
 
 
 def _solve_chunks_cuda(rig, table, cfg, spec, chunks, sweeps):

@@ -332,10 +332,12 @@ def pixel_system(
         )
         * w_ev[:, None]
     )
-    if x0 is not None and noise is not None:
+    w_log = None  # the weights of the photoreceptor model's rows (log units)
+    if noise is not None:
         w_log = jnp.where(mask, w_noise, 0.0)
         if event_scale is not None:
             w_log = w_log * event_scale
+    if x0 is not None and noise is not None:
         lin = _lowpass_rows(
             rig, a_at, jnp.asarray(x0, dtype), noise[2], t_raw, step, t0_phase_us,
             sweeps,
@@ -431,7 +433,7 @@ def pixel_system(
             [int_rows, jnp.pad(d1 * wd[:, None], ((0, 0), (0, 1)))], axis=0
         )
     if return_rows:
-        return PixelRows(ev_rows, int_rows, spec_w, s_hat, sigma_ev)
+        return PixelRows(ev_rows, int_rows, spec_w, s_hat, sigma_ev, w_log)
     rows = jnp.concatenate([ev_rows, int_rows], axis=0)
     return _system(cfg, m, rows.T @ rows, spec_w, s_hat, return_gram)
 
@@ -442,13 +444,16 @@ class PixelRows(NamedTuple):
     `events` `(k, M+1)` and `drift` `(g, M+1)` act on $[x; 1]$; `spec_weight` is the
     spectral prior's weight; `sigma` `(k,)` each event row's ideal-sensor deviation (log
     units) before its noise weight: a weighted row's residual divided by it is the
-    residual in standard deviations."""
+    residual in standard deviations. `log_weight` `(k,)`, with a noise model: each
+    event's weight in the photoreceptor model's rows (:func:`_lowpass_rows`, whose
+    rows are in log units: the noise weight alone), None without one."""
 
     events: Array
     drift: Array
     spec_weight: Array
     s_hat: Array
     sigma: Array
+    log_weight: Array | None = None
 
 
 def system_from_rows(cfg: ProblemConfig, rows: PixelRows, row_weight=None):

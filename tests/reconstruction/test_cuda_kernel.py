@@ -261,3 +261,63 @@ def test_kernel_cache_falls_back_where_numba_cannot_cache():
             raise ValueError("bad option")
 
         _kernel_jit(bad, {}, True)(kernel)
+
+
+LOWPASS = r"""
+import json
+import numpy as np
+import jax.numpy as jnp
+import jax.random as jr
+import evhsi_jax as ev
+from evhsi_jax._reconstruct import _pipeline as pl, _cuda_lowpass as cl, _cuda_kernel as ck
+from evhsi_jax._reconstruct._pixels import group_pixels
+
+assert ck.simulated()
+# A coarse time grid (the simulator walks it in Python): 96 samples per sweep.
+rig = ev.Rig(channels=8, sensor="realistic", samples_per_sweep=96)
+events = ev.simulate(ev.load_scene("colorchecker", (1, 3)), rig, sweeps=1, key=jr.key(2))
+noise = pl.noise_model(rig)
+table = pl.channel_table(rig)
+h, w = events.height, events.width
+screened, _, _ = pl.screen_events(events, rig, 0, noise, 1, None)
+bt = group_pixels(screened, t_start_us=0, chunk_pixels=4, min_chunk=1, merge_below=0)[0][0]
+pix = np.where(bt.pixel >= 0, bt.pixel, 0)
+offs = np.asarray(rig.column_offsets(w), np.float64)
+thr_on = np.linspace(0.9, 1.1, h * w) * float(rig.threshold_on)
+thr_off = np.linspace(1.1, 0.9, h * w) * float(rig.threshold_off)
+d = np.where(np.arange(pix.size) == 1, 37.5, 0.0)  # a carried reference: clock shift
+px = pl._device_pixels(bt.t_us, bt.polarity, bt.mask, pix, bt.column, d, offs, thr_on,
+                       thr_off, np.float32)
+noise_j = jnp.asarray(noise, jnp.float32)
+cfg = pl.ProblemConfig()
+rows, n = pl._chunk_rows(rig, table, cfg, px, 1, noise_j)
+x0 = jnp.asarray(np.random.default_rng(0).uniform(0.1, 0.9, (pix.size, 8)), jnp.float32)
+ref = pl._chunk_rows(rig, table, cfg, px, 1, noise_j, x0)[0].events
+par, g_n = cl.lowpass_params(rig, table, noise, 1)
+got = cl.lowpass_rows(px, n, rows.log_weight, x0, table.values, par, g_n)
+print(json.dumps({"got": np.asarray(got).tolist(), "ref": np.asarray(ref).tolist(),
+                  "n": np.asarray(n).tolist()}))
+"""
+
+
+def test_photoreceptor_rows_kernel_matches_jax():
+    """The photoreceptor pass's rows by the kernel of `_cuda_lowpass` (one warp walks
+    a pixel's time grid; here 4 simulated threads, 96 grid points) against JAX's
+    `_lowpass_rows` (`_chunk_rows` with `x0`): per-pixel thresholds, a pixel with a
+    shifted clock, padding rows zero. Only rounding may differ (recursion against
+    JAX's associative scan)."""
+    env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1")
+    res = subprocess.run(
+        [sys.executable, "-c", LOWPASS], env=env, capture_output=True, text=True,
+        timeout=600,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr[-3000:]
+    out = json.loads(res.stdout.strip().splitlines()[-1])
+    got, ref, n = np.array(out["got"]), np.array(out["ref"]), np.array(out["n"])
+    assert got.shape == ref.shape and (n >= 2).all()
+    scale = np.abs(ref).max()
+    assert scale > 0.01  # rows that say something
+    np.testing.assert_allclose(got, ref, atol=2e-5 * scale, rtol=0)
+    for p, k in enumerate(n):
+        assert np.all(got[p, k:] == 0.0)
+        assert np.all(np.abs(got[p, :k]).max(axis=1) > 0)
