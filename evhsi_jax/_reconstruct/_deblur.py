@@ -15,11 +15,17 @@ frequency. A NumPy/SciPy post-process of the cube (no solve is changed); not
 differentiable. The transforms are real-to-complex (`scipy.fft.rfft2`: the cube and
 the filter are real, so half the spectrum suffices) on every core, in float32: on a
 360×640 `realistic` capture NumPy's complex transforms on one core had been a quarter
-of the whole reconstruction (4.0 of 16.2 s).
+of the whole reconstruction (4.0 of 16.2 s). Where the reconstruction left its cube
+on a GPU, the same filter runs there (:func:`deblur_cube_device`, JAX's FFT), and the
+cube comes home deblurred.
 """
 
 from __future__ import annotations
 
+import functools
+
+import jax
+import jax.numpy as jnp
 import numpy as np
 import scipy.fft
 
@@ -50,6 +56,22 @@ def _transfer(kernel: np.ndarray, n: int) -> np.ndarray:
     return (kernel[None, :] * np.cos(2 * np.pi * f[:, None] * j[None, :])).sum(1)
 
 
+def _wiener_plan(sigma_px: float, reg: float, h: int, w: int):
+    """(padding, filter): the edge padding of an `h`×`w` image and the Wiener
+    filter's gain `(H + 2·pad, (W + 2·pad) // 2 + 1)` float32 on that grid's rfft
+    frequencies."""
+    if not reg > 0:
+        raise ValueError(f"the Wiener regularisation must be > 0, got {reg}")
+    k = gaussian_kernel_1d(sigma_px)
+    pad = max(8, 3 * (k.size // 2))
+    hy = _transfer(k, h + 2 * pad)
+    hx = _transfer(k, w + 2 * pad)
+    tf = hy[:, None] * hx[None, :]
+    gain = tf * (1.0 + reg) / (tf * tf + reg)  # DC gain 1: levels kept
+    # (rfft's frequencies: the first half of fft's)
+    return pad, gain[:, : (w + 2 * pad) // 2 + 1].astype(np.float32)
+
+
 def deblur_cube(
     cube: np.ndarray, sigma_px: float, reg: float = DEFAULT_WIENER_REG
 ) -> np.ndarray:
@@ -58,24 +80,39 @@ def deblur_cube(
     cube unchanged."""
     if sigma_px <= 0:
         return cube
-    if not reg > 0:
-        raise ValueError(f"the Wiener regularisation must be > 0, got {reg}")
     h, w, _ = cube.shape
-    k = gaussian_kernel_1d(sigma_px)
-    pad = max(8, 3 * (k.size // 2))
+    pad, gain = _wiener_plan(sigma_px, reg, h, w)
     # In float32, the cube's own precision (SciPy's single-precision transforms):
     # against float64 transforms the answer moves by < 1e-6 on a unit-range cube, in
     # about a third of the time and ~60 % of the memory (experiments/bench_deblur_ab.py).
     big = np.pad(
         cube.astype(np.float32, copy=False), ((pad, pad), (pad, pad), (0, 0)), "edge"
     )
-    hy = _transfer(k, big.shape[0])
-    hx = _transfer(k, big.shape[1])
-    tf = hy[:, None] * hx[None, :]
-    gain = tf * (1.0 + reg) / (tf * tf + reg)  # DC gain 1: levels kept
     cores = shard.usable_cores()
     spec = scipy.fft.rfft2(big, axes=(0, 1), workers=cores)
-    # (rfft's frequencies: the first half of fft's)
-    spec *= gain[:, : spec.shape[1], None].astype(np.float32)
+    spec *= gain[:, :, None]
     out = scipy.fft.irfft2(spec, s=big.shape[:2], axes=(0, 1), workers=cores)
     return out[pad : pad + h, pad : pad + w].astype(np.float32)
+
+
+def deblur_cube_device(cube, sigma_px: float, reg: float = DEFAULT_WIENER_REG,
+                       clip_max: float | None = None):  # fmt: skip
+    """:func:`deblur_cube` of a JAX cube `(H, W, M)` float32 where it is (a GPU's
+    FFT: the cube does not go to the host and back), then clipped to
+    [0, `clip_max`] (None: not clipped). The same filter; the transforms' rounding
+    differs from SciPy's (float32 both)."""
+    if sigma_px <= 0:
+        return cube if clip_max is None else jnp.clip(cube, 0.0, clip_max)
+    h, w, _ = cube.shape
+    pad, gain = _wiener_plan(sigma_px, reg, h, w)
+    return _wiener(cube, jnp.asarray(gain), pad, clip_max)
+
+
+@functools.partial(jax.jit, static_argnums=(2, 3))
+def _wiener(cube, gain, pad: int, clip_max):
+    h, w, _ = cube.shape
+    big = jnp.pad(cube, ((pad, pad), (pad, pad), (0, 0)), mode="edge")
+    spec = jnp.fft.rfft2(big, axes=(0, 1)) * gain[:, :, None].astype(jnp.complex64)
+    out = jnp.fft.irfft2(spec, s=big.shape[:2], axes=(0, 1))[pad : pad + h, pad : pad + w]
+    out = out.astype(jnp.float32)
+    return out if clip_max is None else jnp.clip(out, 0.0, clip_max)

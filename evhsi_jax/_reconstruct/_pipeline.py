@@ -25,7 +25,7 @@ from tqdm.auto import tqdm
 from .._base import call_exported, check_fits, shard, use_numba
 from .._model import Calibration, EventStream, Rig, band_table
 from . import _solvers
-from ._deblur import deblur_cube
+from ._deblur import deblur_cube, deblur_cube_device
 from ._fused import FusedProblem, fused_supported, solve_fused
 from ._pixels import DeviceLists, PixelEvents, bucket_plan, group_pixels, pixel_lists
 from ._problem import (
@@ -819,16 +819,23 @@ def reconstruct(
         gain = (1.0 / np.asarray(rig.channel_gain, np.float64)).astype(np.float32)
     psf = float(rig.effects.psf_sigma_px)
     deblurred = (psf > 0) if deblur is None else deblur
-    clipped = False
-    if held is not None:  # finished on the device: one pass there, not four here
-        clipped = not (hot.any() or deblurred)
-        cube, kkt_all = (
-            shard.to_host_copy(a)
-            for a in _finish_on_device(
-                *held, _no_event_answer(rig, m), gain,
-                cfg.max_reflectance if clipped else None,
-            )
+    clipped = hot_done = False
+    if held is not None:  # finished on the device (gains, hot pixels' fill,
+        # deblurring, clip), and the cube comes home once
+        later = hot.any() or deblurred
+        cube_d, kkt_d = _finish_on_device(
+            *held, _no_event_answer(rig, m), gain,
+            None if later else cfg.max_reflectance,
         )  # fmt: skip
+        if hot.any():
+            cube_d = _fill_from_neighbours_device(cube_d, hot, counts.reshape(h, w))
+        if later:
+            cube_d = deblur_cube_device(
+                cube_d.reshape(h, w, m), psf if deblurred else 0.0,
+                clip_max=cfg.max_reflectance,
+            )  # fmt: skip
+        cube, kkt_all = shard.to_host_copy(cube_d), shard.to_host_copy(kkt_d)
+        clipped, hot_done, deblurred = True, True, False
     else:
         bad = ~np.isfinite(cube)
         if bad.any():  # never hand out NaN: the no-event answer, flagged (kkt = inf)
@@ -836,7 +843,8 @@ def reconstruct(
             kkt_all[np.any(bad, axis=1)] = np.inf
         if gain is not None:
             cube = cube * gain
-    if hot.any():  # hot pixels carry no light information: fill from neighbours
+    if hot.any() and not hot_done:  # hot pixels carry no light information: fill
+        # from their neighbours
         cube = _fill_from_neighbours(cube.reshape(h, w, m), hot, counts.reshape(h, w))
     if deblurred:
         cube = deblur_cube(cube.reshape(h, w, m), psf)
@@ -1088,6 +1096,50 @@ def _fill_from_neighbours(cube, hot, counts):
             nb = cube[good] if good.any() else cube.reshape(-1, m)
         out[y, x] = np.median(nb, axis=0)
     return out
+
+
+def _fill_from_neighbours_device(cube, hot, counts):
+    """:func:`_fill_from_neighbours` of a JAX cube `(H·W, M)` on its device: the
+    hot pixels' 3×3 neighbourhoods are gathered there and brought over (a few
+    hundred kB), their medians taken here as the host's fill takes them (the same
+    values), and set there. `hot`, `counts`: `(H, W)` host arrays. The gather and
+    the scatter are padded to a power of two of hot pixels (few compiled shapes)."""
+    h, w = hot.shape
+    m = cube.shape[1]
+    good = ~hot & (counts > 0)
+    ys, xs = np.nonzero(hot)
+    n_pad = 1 << int(math.ceil(math.log2(ys.size)))
+    dy, dx = np.divmod(np.arange(9), 3)
+    yy, xx = ys[:, None] + dy - 1, xs[:, None] + dx - 1
+    inside = (yy >= 0) & (yy < h) & (xx >= 0) & (xx < w)
+    yc, xc = np.clip(yy, 0, h - 1), np.clip(xx, 0, w - 1)
+    use = inside & good[yc, xc]
+    flat = np.zeros((n_pad, 9), np.int32)
+    flat[: ys.size] = yc * w + xc
+    nb = np.asarray(_gather_rows(cube, jax.device_put(flat)))
+    vals = np.zeros((n_pad, m), np.float32)
+    whole = None
+    for i in range(ys.size):
+        if use[i].any():
+            vals[i] = np.median(nb[i][use[i]], axis=0)
+        else:  # no usable neighbour (rare): the median of all solved pixels
+            if whole is None:
+                host = np.asarray(cube)
+                whole = host[good.reshape(-1)] if good.any() else host
+            vals[i] = np.median(whole, axis=0)
+    at = np.full(n_pad, h * w, np.int32)  # (padding: dropped)
+    at[: ys.size] = ys * w + xs
+    return _set_rows(cube, *jax.device_put((at, vals)))
+
+
+@jax.jit
+def _gather_rows(cube, idx):
+    return cube[idx]
+
+
+@functools.partial(jax.jit, donate_argnums=(0,))
+def _set_rows(cube, at, vals):
+    return cube.at[at].set(vals, mode="drop")
 
 
 def _reference_lead_us(reference_us, t_start_us, period, h, w) -> np.ndarray:

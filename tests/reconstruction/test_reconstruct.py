@@ -190,6 +190,49 @@ def test_device_finish_is_the_hosts():
         np.testing.assert_array_equal(np.asarray(got_k), want_k)
 
 
+def test_device_fill_and_deblur_are_the_hosts(capture, monkeypatch):
+    # With the grouping on the device the hot pixels' fill, the deblurring and the
+    # clip run there too: the fill gives the host's values bit for bit (medians of
+    # the same neighbours, taken on the host), the deblurring the host's filter up
+    # to the FFTs' float32 rounding.
+    from evhsi_jax._reconstruct import _pipeline
+    from evhsi_jax._reconstruct._deblur import deblur_cube, deblur_cube_device
+
+    rng = np.random.default_rng(4)
+    h, w, m = 9, 11, 6
+    cube = rng.uniform(0.0, 1.0, (h, w, m)).astype(np.float32)
+    hot = np.zeros((h, w), bool)
+    hot[0, 0] = hot[4, 5] = hot[8, 10] = True  # corners and the middle
+    hot[3:6, 1:4] = True  # a pixel (4, 2) whose neighbours are all hot
+    counts = np.ones((h, w), np.int64)
+    counts[7, 9] = 0  # a neighbour without events does not count
+    want = _pipeline._fill_from_neighbours(cube, hot, counts)
+    got = _pipeline._fill_from_neighbours_device(
+        jnp.asarray(cube.reshape(h * w, m)), hot, counts
+    )
+    np.testing.assert_array_equal(np.asarray(got).reshape(h, w, m), want)
+    assert not np.array_equal(want, cube)
+    blur = deblur_cube(want, 0.7)
+    dev = np.asarray(deblur_cube_device(jnp.asarray(want), 0.7))
+    np.testing.assert_allclose(dev, blur, atol=2e-6, rtol=0)
+    assert np.abs(blur - want).max() > 0.05  # the filter does something
+    clipped = np.asarray(deblur_cube_device(jnp.asarray(want), 0.7, clip_max=0.9))
+    np.testing.assert_allclose(clipped, np.clip(blur, 0.0, 0.9), atol=2e-6, rtol=0)
+    # The whole call: a calibration with a blur and hot pixels, both routes.
+    rig, _, events, info = capture
+    hot_map = np.zeros(SIZE, bool)
+    hot_map[2, 3] = hot_map[5, 7] = True
+    cal = ev.Calibration(rig.replace_host(psf_sigma_px=0.6), info.threshold_on,
+                         info.threshold_off, hot_map)  # fmt: skip
+    cubes = []
+    for where in (False, True):
+        monkeypatch.setattr(_pipeline, "DEVICE_GROUPING", where)
+        cubes.append(ev.reconstruct(events, cal, backend="jax", chunk_pixels=32,
+                                    sub_batch=8))  # fmt: skip
+    np.testing.assert_allclose(cubes[1], cubes[0], atol=5e-6, rtol=0)
+    assert cubes[1].max() <= ev.reconstruction.ProblemConfig().max_reflectance
+
+
 def test_no_recompilation_on_second_call(capture):
     rig, _, events, _ = capture
     ev.reconstruct(events, rig)
