@@ -361,12 +361,14 @@ def _chunk_huber(cfg: ProblemConfig, rows, mask, x):
         return _huber_weights(cfg, rows, mask, x)
 
 
-def _solve_chunk_cuda(rig, table, cfg, spec, sub, px, sweeps, noise=None):
+def _solve_chunk_cuda(rig, table, cfg, spec, sub, px, sweeps, noise=None, first=None):
     """:func:`_solve_chunk` with the CUDA kernel (`backend="cuda"`): JAX forms the
     rows, the kernel (:mod:`._cuda_kernel`) each pixel's Gram matrix, priors and box
-    QP in the GPU's on-chip memory; the photoreceptor passes and the robust
-    reweighting of the noise model run as in :func:`_solve_chunk`, each solve
-    through the kernel. `sub` is unused (the kernel takes the whole chunk)."""
+    QP in the GPU's on-chip memory; the photoreceptor passes (their rows by the
+    kernel of :mod:`._cuda_lowpass`) and the robust reweighting of the noise model
+    run as in :func:`_solve_chunk`, each solve through the kernel. `sub` is unused
+    (the kernel takes the whole chunk); `first`: the chunk's first rows and counts
+    (`_chunk_rows`), when the caller has dispatched them already."""
     from . import _cuda_kernel as ck
 
     m = table.values.shape[1]
@@ -379,7 +381,7 @@ def _solve_chunk_cuda(rig, table, cfg, spec, sub, px, sweeps, noise=None):
         )  # fmt: skip
         return ck.to_jax(x), ck.to_jax(kkt)
 
-    rows, n = _chunk_rows(rig, table, cfg, px, sweeps, noise)
+    rows, n = _chunk_rows(rig, table, cfg, px, sweeps, noise) if first is None else first
     x, kkt = solve(rows, n)
     if noise is None:
         return x, kkt
@@ -410,6 +412,27 @@ def _lowpass_rows_cuda(rig, table, noise, sweeps, px, n, rows, x):
     jax.block_until_ready((px, n, rows.log_weight, x, table.values))
     out = cl.lowpass_rows(px, n, rows.log_weight, x, table.values, par, g_n)
     return ck.to_jax(out)
+
+
+def _solve_chunks_cuda_noise(rig, table, cfg, spec, chunks, sweeps, noise):
+    """The chunks of a reconstruction with a noise model through the CUDA kernels
+    (:func:`_solve_chunk_cuda`), each chunk's first rows dispatched to JAX before
+    the chunk before it is solved, so that JAX forms them while the kernels run.
+    `chunks` yields `(pixel, pixel_device, px)`; yields each with its `(x, kkt)`."""
+
+    def solved(chunk, first):
+        return (*chunk, *_solve_chunk_cuda(
+            rig, table, cfg, spec, 0, chunk[2], sweeps, noise, first
+        ))  # fmt: skip
+
+    pending = None
+    for chunk in chunks:
+        first = _chunk_rows(rig, table, cfg, chunk[2], sweeps, noise)  # dispatched
+        if pending is not None:
+            yield solved(*pending)
+        pending = (chunk, first)
+    if pending is not None:
+        yield solved(*pending)
 
 
 def _solve_chunks_cuda(rig, table, cfg, spec, chunks, sweeps):
@@ -781,9 +804,14 @@ def reconstruct(
         )
 
     def solved():  # each chunk with its answers
-        if solve is _solve_chunk_cuda and noise_j is None:  # the next chunk's rows
-            # formed while the kernel solves one
-            yield from _solve_chunks_cuda(rig, table, cfg, spec, chunks(), sweeps)
+        if solve is _solve_chunk_cuda:  # the next chunk's rows formed while the
+            # kernels solve one
+            if noise_j is None:
+                yield from _solve_chunks_cuda(rig, table, cfg, spec, chunks(), sweeps)
+            else:
+                yield from _solve_chunks_cuda_noise(
+                    rig, table, cfg, spec, chunks(), sweeps, noise_j
+                )  # fmt: skip
             return
         for pixel, pix_dev, px in chunks():
             yield pixel, pix_dev, px, *solve(

@@ -105,12 +105,13 @@ a, info = ev.reconstruct(events, rig, backend="cuda", return_info=True)
 b, info_b = ev.reconstruct(events, rig, backend="jax", return_info=True)
 out = {"sam": ev.metrics.sam_map_deg(a, b).tolist(), "solved": info.solved.tolist(),
        "kkt": info.kkt.tolist(), "solved_jax": info_b.solved.tolist()}
-if sys.argv[1] == "ideal":  # one pixel per chunk, grouped and placed by the device:
-    # the chunks go through the kernel while the next one's rows are formed
-    from evhsi_jax._reconstruct import _pipeline
-    _pipeline.DEVICE_GROUPING = True
-    c = ev.reconstruct(events, rig, backend="cuda", chunk_pixels=1, sub_batch=1)
-    out["sam_chunked"] = ev.metrics.sam_map_deg(c, a).tolist()
+# One pixel per chunk, grouped and placed by the device (there also the hot pixels'
+# fill and the deblurring): the chunks go through the kernels while the next one's
+# rows are formed
+from evhsi_jax._reconstruct import _pipeline
+_pipeline.DEVICE_GROUPING = True
+c = ev.reconstruct(events, rig, backend="cuda", chunk_pixels=1, sub_batch=1)
+out["sam_chunked"] = ev.metrics.sam_map_deg(c, a).tolist()
 print(json.dumps(out))
 """
 
@@ -141,7 +142,9 @@ def test_reconstruct_backend_cuda_equals_jax_ideal():
 @pytest.mark.slow
 def test_reconstruct_backend_cuda_equals_jax_realistic():
     """The same with the realistic preset: the photoreceptor pass (rows relinearised
-    at the kernel's answer) and the robust reweighting (the kernel's row weights).
+    at the kernel's answer, by the kernel of `_cuda_lowpass`) and the robust
+    reweighting (the kernel's row weights); with one pixel per chunk, the chunks'
+    pipeline of the noise path and the device's fill and deblurring.
     Its hot pixels (here the third: its events are dropped, its spectrum filled in)
     are not solved by either backend."""
     out = _pipeline("realistic")
@@ -150,6 +153,7 @@ def test_reconstruct_backend_cuda_equals_jax_realistic():
     assert solved.sum() >= 2
     assert np.all(np.isfinite(np.array(out["kkt"])[solved]))
     assert np.max(out["sam"]) < 0.05
+    assert np.max(out["sam_chunked"]) < 1e-4
 
 
 def test_kernel_variant_strings():
