@@ -56,6 +56,35 @@ def lit_mask(x, t_us, t_start_us, period, lo_col, hi_col, inside):
         )
 
 
+@njit
+@no_type_check
+def drop_hot(x, y, inside, hot, width, keep):
+    """keep[i] = inside[i] and the event's pixel (y·W + x) is not `hot`; returns
+    how many are kept. Releases the GIL (slices on several threads)."""
+    n = 0
+    for i in range(x.size):
+        k = inside[i] and not hot[np.int64(y[i]) * width + np.int64(x[i])]
+        keep[i] = k
+        n += k
+    return n
+
+
+@njit
+@no_type_check
+def compact_events(keep, x, y, p, t, out_x, out_y, out_p, out_t, o0):
+    """The events with `keep` set, in order, into the output arrays from index
+    `o0` on (one slice of a parallel compaction: each slice's offset is the number
+    kept before it)."""
+    j = o0
+    for i in range(keep.size):
+        if keep[i]:
+            out_x[j] = x[i]
+            out_y[j] = y[i]
+            out_p[j] = p[i]
+            out_t[j] = t[i]
+            j += 1
+
+
 #: Pixels per block of :func:`pixel_lists`' partition pass (2^10: a block's events
 #: fit in a core's L2 cache, the ~900 blocks' write positions in L1).
 LIST_BLOCK_SHIFT = 10

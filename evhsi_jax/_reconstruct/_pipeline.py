@@ -22,7 +22,7 @@ from jax.sharding import Mesh
 from jax.sharding import PartitionSpec as P
 from tqdm.auto import tqdm
 
-from .._base import call_exported, check_fits, shard, use_numba
+from .._base import call_exported, check_fits, readonly, shard, use_numba
 from .._model import Calibration, EventStream, Rig, band_table
 from . import _solvers
 from ._deblur import deblur_cube, deblur_cube_device
@@ -712,9 +712,9 @@ def reconstruct(
         solve, n_dev = functools.partial(solve_chunk_sharded, mesh), mesh.devices.size
         sub = shard.sub_batch_for(mesh, sub)
     chunk = sub * math.ceil(chunk_pixels / sub)
-    screened, hot, n_dropped = screen_events(
+    keep, n_kept, hot, n_dropped = _screen_mask(
         events, rig, t_start_us, noise, sweeps, cal.hot_pixels
-    )
+    )  # (screen_events; the kept events taken below where needed)
     # A bucket's last chunk is padded to sub × 2^j (small images and buckets pad
     # little); a bucket of fewer than a quarter chunk of pixels joins the next one
     # (one compiled shape less for a little padding).
@@ -725,14 +725,16 @@ def reconstruct(
             DEVICE_GROUPING is True
             or (DEVICE_GROUPING == "auto" and shard.device_platform(None) != "cpu")
         )
-        and DeviceLists.fits(screened, t_start_us)
+        and DeviceLists.fits(events, t_start_us)
     )
     plan, lists, batches = [], None, []
+    if not on_device:
+        screened = events if keep is None else _take_kept(events, keep, n_kept)
     if fused:
         lists = pixel_lists(screened, t_start_us)
         counts = lists[0]
     elif on_device:  # sorted and cut into batches where the solve runs
-        lists = DeviceLists(screened, t_start_us)
+        lists = DeviceLists(events, t_start_us, keep)  # (the dropped sort last)
         counts = lists.counts
         plan = bucket_plan(counts, chunk, sub, chunk // 4)  # (mesh is None: n_dev 1)
     else:
@@ -1059,10 +1061,20 @@ def screen_events(
     **Returns:** `(events, hot, dropped)` — the kept events, the hot-pixel mask
     `(H, W)` and the number of events dropped.
     """
+    keep, n_kept, hot, dropped = _screen_mask(
+        events, rig, t_start_us, noise, sweeps, hot_map, margin_us
+    )
+    return (events if keep is None else _take_kept(events, keep, n_kept)), hot, dropped
+
+
+def _screen_mask(events, rig, t_start_us, noise, sweeps, hot_map=None, margin_us=None):
+    """:func:`screen_events` without taking the kept events: `(keep, n_kept, hot,
+    dropped)`, `keep` a bool per event or None when every event is kept (the
+    device's grouping drops the others where it sorts them: no copy here)."""
     h, w = events.height, events.width
     hot = np.zeros(h * w, bool) if hot_map is None else hot_map.reshape(-1).copy()
     if len(events) == 0:
-        return events, hot.reshape(h, w), 0
+        return None, 0, hot.reshape(h, w), 0
     geo = {k: np.asarray(v, np.float64) for k, v in _rig_geometry(rig, w).items()}
     period, t_arrive, t_leave = float(geo["period_us"]), geo["arrive"], geo["leave"]
     sig_t = 0.0 if noise is None else float(noise[1])
@@ -1074,41 +1086,85 @@ def screen_events(
     def flat_pixel(sel=slice(None)):  # flat index y·W + x of the events `sel`
         return events.y[sel].astype(np.int64) * w + events.x[sel]
 
-    if use_numba():  # one pass (the NumPy code below is the reference)
-        from ._group_jit import lit_mask
+    n = len(events)
+    if use_numba():  # (the NumPy code below is the reference)
+        from ._group_jit import drop_hot, lit_mask
 
-        inside = np.empty(len(events), bool)
+        inside = np.empty(n, bool)
         lo_col, hi_col = t_arrive - margin, t_leave + margin
+        starts = range(0, n, SCREEN_SLICE)
+        threaded = len(starts) > 1 and shard.usable_cores() > 1
 
-        def part(i0):
-            i1 = min(i0 + SCREEN_SLICE, inside.size)
+        def in_parallel(part):
+            if not threaded:
+                return [part(i0) for i0 in starts]
+            with concurrent.futures.ThreadPoolExecutor(shard.usable_cores()) as pool:
+                return list(pool.map(part, starts))
+
+        def lit(i0):
+            i1 = min(i0 + SCREEN_SLICE, n)
             lit_mask(events.x[i0:i1], events.t_us[i0:i1], np.int64(t_start_us),
                      period, lo_col, hi_col, inside[i0:i1])  # fmt: skip
 
-        starts = range(0, inside.size, SCREEN_SLICE)
-        if len(starts) > 1 and shard.usable_cores() > 1:
-            with concurrent.futures.ThreadPoolExecutor(shard.usable_cores()) as pool:
-                list(pool.map(part, starts))
-        else:
-            for i0 in starts:
-                part(i0)
-    else:
-        x = events.x.astype(np.int64)
-        local = np.mod(events.t_us.astype(np.float64) - t_start_us, period)
-        lo, hi = t_arrive[x] - margin, t_leave[x] + margin
-        # The interval may wrap around the period (local times are taken modulo P).
-        inside = (
-            ((local >= lo) & (local <= hi))
-            | ((local + period >= lo) & (local + period <= hi))
-            | ((local - period >= lo) & (local - period <= hi))
-        )
+        in_parallel(lit)
+        out = np.flatnonzero(~inside)  # few: noise and hot pixels' events
+        outside = np.bincount(flat_pixel(out), minlength=h * w)
+        hot |= (outside >= 2) & (outside >= 2 * sweeps)
+        if not hot.any():
+            n_kept = n - out.size
+            return (None if out.size == 0 else inside), n_kept, hot.reshape(h, w), out.size
+        keep = np.empty(n, bool)
+        hot_ro = readonly(hot, bool)
+
+        def unhot(i0):
+            i1 = min(i0 + SCREEN_SLICE, n)
+            return drop_hot(readonly(events.x[i0:i1], events.x.dtype),
+                            readonly(events.y[i0:i1], events.y.dtype),
+                            readonly(inside[i0:i1], bool), hot_ro, np.int64(w),
+                            keep[i0:i1])  # fmt: skip
+
+        n_kept = int(sum(in_parallel(unhot)))
+        return keep, n_kept, hot.reshape(h, w), n - n_kept
+    x = events.x.astype(np.int64)
+    local = np.mod(events.t_us.astype(np.float64) - t_start_us, period)
+    lo, hi = t_arrive[x] - margin, t_leave[x] + margin
+    # The interval may wrap around the period (local times are taken modulo P).
+    inside = (
+        ((local >= lo) & (local <= hi))
+        | ((local + period >= lo) & (local + period <= hi))
+        | ((local - period >= lo) & (local - period <= hi))
+    )
     outside = np.bincount(flat_pixel(~inside), minlength=h * w)
     hot |= (outside >= 2) & (outside >= 2 * sweeps)
     keep = inside & ~hot[flat_pixel()] if hot.any() else inside
-    dropped = int(keep.size - keep.sum())
-    if dropped:
-        events = events.take(keep)
-    return events, hot.reshape(h, w), dropped
+    n_kept = int(keep.sum())
+    return (None if n_kept == n else keep), n_kept, hot.reshape(h, w), n - n_kept
+
+
+def _take_kept(events, keep, n_kept):
+    """`events.take(keep)`: with numba, slices compacted on the usable cores (each
+    slice's kept events go to its offset), else NumPy's boolean indexing."""
+    n = len(events)
+    if not use_numba() or n < 2 * SCREEN_SLICE or shard.usable_cores() == 1:
+        return events.take(keep)
+    from ._group_jit import compact_events
+
+    starts = list(range(0, n, SCREEN_SLICE))
+    counts = [int(np.count_nonzero(keep[i0 : i0 + SCREEN_SLICE])) for i0 in starts]
+    offsets = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    src = (events.x, events.y, events.p, events.t_us)
+    out = tuple(np.empty(n_kept, a.dtype) for a in src)
+
+    def part(i):
+        i0, i1 = starts[i], min(starts[i] + SCREEN_SLICE, n)
+        compact_events(
+            readonly(keep[i0:i1], bool), *(readonly(a[i0:i1], a.dtype) for a in src),
+            *out, np.int64(offsets[i]),
+        )  # fmt: skip
+
+    with concurrent.futures.ThreadPoolExecutor(shard.usable_cores()) as pool:
+        list(pool.map(part, range(len(starts))))
+    return dataclasses.replace(events, x=out[0], y=out[1], p=out[2], t_us=out[3])
 
 
 def _fill_from_neighbours(cube, hot, counts):

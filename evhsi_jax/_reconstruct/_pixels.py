@@ -277,14 +277,16 @@ class DeviceLists:
     The events go to the device once as (x, y, time from the start in int32, polarity);
     the number of events is padded to a power of two (few compiled shapes) with
     entries that sort last. Only the per-pixel counts come back (the plan is made on
+    the host). `keep`: optionally a bool per event, the events to use (the others
+    go over as padding: the screening's drop without a copy of the kept events on
     the host). A batch's times are `float(t) + TIMESTAMP_CENTRE_US + lead` in the
     batch's dtype: bit for bit the host's `float(t + 0.5 + lead)` when `lead` is 0
     and t < 2^23 µs (float32), else within a rounding of it.
     """
 
-    def __init__(self, events: EventStream, t_start_us: int):
+    def __init__(self, events: EventStream, t_start_us: int, keep=None):
         w, h = events.width, events.height
-        x, y, t_rel, p = _padded_for_device(events, t_start_us)
+        x, y, t_rel, p = _padded_for_device(events, t_start_us, keep)
         counts, starts, t_s, s_s = _sort_by_pixel(*jax.device_put((x, y, t_rel, p)), w,
                                                   w * h)  # fmt: skip
         self.counts = np.asarray(counts).astype(np.int64)  # (the host's plan)
@@ -319,10 +321,11 @@ class DeviceLists:
         )  # fmt: skip
 
 
-def _padded_for_device(events: EventStream, t_start_us: int):
+def _padded_for_device(events: EventStream, t_start_us: int, keep=None):
     """`(x, y, t_rel, p)` of :class:`DeviceLists`: the events' columns, rows, int32
     times from `t_start_us` and polarities, padded to a power of two (at least 1024)
-    with events at row H (past the last pixel: they sort last). From
+    with events at row H (past the last pixel: they sort last), as are the events
+    whose `keep` is False. From
     `THREADED_LISTS_MIN` events on, slices are filled on the usable cores (at most
     8; NumPy's copies release the GIL, and the fresh arrays' pages are then touched
     by several cores): the same arrays."""
@@ -335,6 +338,8 @@ def _padded_for_device(events: EventStream, t_start_us: int):
         e1 = min(i1, n)
         np.subtract(events.t_us[i0:e1], t_start_us, out=t_rel[i0:e1], casting="unsafe")
         x[i0:e1], y[i0:e1], p[i0:e1] = events.x[i0:e1], events.y[i0:e1], events.p[i0:e1]
+        if keep is not None:
+            np.copyto(y[i0:e1], h, where=~keep[i0:e1])
         p0 = max(i0, n)
         t_rel[p0:i1], x[p0:i1], p[p0:i1], y[p0:i1] = 0, 0, 0, h
 

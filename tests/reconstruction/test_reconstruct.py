@@ -326,6 +326,32 @@ def test_screening_kernel_matches_the_numpy_reference(slice_events, monkeypatch)
             np.testing.assert_array_equal(getattr(got[0], f), getattr(ref[0], f))
 
 
+def test_device_lists_drop_the_screened_events_themselves():
+    # The device's grouping takes the screening's mask instead of the kept events
+    # (no host copy of 25 M events): the events it drops sort past the last pixel,
+    # and every pixel's list is the one of the screened stream.
+    from evhsi_jax._reconstruct._pipeline import _screen_mask, noise_model, screen_events
+    from evhsi_jax._reconstruct._pixels import DeviceLists
+
+    rig = ev.Rig(noise_rate_hz=40.0, hot_pixel_fraction=0.05, timestamp_jitter_us=5.0)
+    events = ev.simulate(ev.load_scene("colorchecker", SIZE), rig, sweeps=2,
+                         key=jr.key(5))  # fmt: skip
+    args = (events, rig, 0, noise_model(rig), 2)
+    keep, n_kept, hot, dropped = _screen_mask(*args)
+    kept, hot_ref, dropped_ref = screen_events(*args)
+    assert keep is not None and dropped == dropped_ref > 0 and hot.any()
+    np.testing.assert_array_equal(hot, hot_ref)
+    assert n_kept == len(kept)
+    a, b = DeviceLists(events, 0, keep), DeviceLists(kept, 0)
+    np.testing.assert_array_equal(a.counts, b.counts)
+    assert a.counts.sum() == n_kept
+    np.testing.assert_array_equal(np.asarray(a.starts), np.asarray(b.starts))
+    for f in ("t_sorted", "s_sorted"):
+        np.testing.assert_array_equal(
+            np.asarray(getattr(a, f))[:n_kept], np.asarray(getattr(b, f))[:n_kept]
+        )
+
+
 def test_batch_sizes_follow_the_device_kind():
     from evhsi_jax._reconstruct._pipeline import (
         ACCELERATOR_BATCH,
