@@ -1,5 +1,5 @@
 """The photoreceptor pass's rows on one GPU: the CUDA kernel of
-`evhsi_jax/_reconstruct/_cuda_noise.py` against JAX's rows (`_problem._lowpass_rows`,
+`evhsi_jax/_reconstruct/_cuda_lowpass.py` against JAX's rows (`_problem._lowpass_rows`,
 an associative scan over each pixel's whole time grid), and the box-QP kernel's
 solve of the same chunk beside them.
 
@@ -40,7 +40,7 @@ from _common import matmul_gflops, write_json
 
 import evhsi_jax as ev
 from evhsi_jax._reconstruct import _cuda_kernel as ck
-from evhsi_jax._reconstruct import _cuda_noise as cl
+from evhsi_jax._reconstruct import _cuda_lowpass as cl
 from evhsi_jax._reconstruct import _pipeline as pipe
 from evhsi_jax._reconstruct._pixels import DeviceLists, bucket_plan
 from evhsi_jax._reconstruct._problem import spectral_prior_matrix

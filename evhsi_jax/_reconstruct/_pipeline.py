@@ -355,17 +355,21 @@ def _chunk_rows(rig, table, cfg: ProblemConfig, px: PixelEvents, sweeps: int,
     return rows, jnp.sum(px.mask, axis=1, dtype=jnp.int32)
 
 
+@eqx.filter_jit
+def _chunk_huber(cfg: ProblemConfig, rows, mask, x):
+    with jax.default_matmul_precision(MATMUL_PRECISION):
+        return _huber_weights(cfg, rows, mask, x)
+
+
 def _solve_chunk_cuda(rig, table, cfg, spec, sub, px, sweeps, noise=None, first=None):
     """:func:`_solve_chunk` with the CUDA kernel (`backend="cuda"`): JAX forms the
     rows, the kernel (:mod:`._cuda_kernel`) each pixel's Gram matrix, priors and box
     QP in the GPU's on-chip memory; the photoreceptor passes (their rows by the
-    kernel of :mod:`._cuda_noise`) and the robust reweighting of the noise model
-    run as in :func:`_solve_chunk` (the weights by a kernel of :mod:`._cuda_noise`
-    too), each solve through the kernel. `sub` is unused
+    kernel of :mod:`._cuda_lowpass`) and the robust reweighting of the noise model
+    run as in :func:`_solve_chunk`, each solve through the kernel. `sub` is unused
     (the kernel takes the whole chunk); `first`: the chunk's first rows and counts
     (`_chunk_rows`), when the caller has dispatched them already."""
     from . import _cuda_kernel as ck
-    from . import _cuda_noise
 
     m = table.values.shape[1]
     prior = spectral_prior_matrix(m, cfg.m_start_frac, cfg.spec_kind)
@@ -390,23 +394,19 @@ def _solve_chunk_cuda(rig, table, cfg, spec, sub, px, sweeps, noise=None, first=
                 rows, n = _chunk_rows(rig, table, cfg, px, sweeps, noise, x)
             x, kkt = solve(rows, n)
     for _ in range(cfg.robust_steps):
-        # The weights by a kernel too (JAX's one stream stays free for the next
-        # chunk's rows); the flag's read waits for numba's stream only.
-        u, any_big = _cuda_noise.huber_weights(
-            rows, n, x, cfg.robust_c, cfg.robust_reject
-        )  # fmt: skip
-        if _cuda_noise.is_set(any_big):
+        u, any_big = _chunk_huber(cfg, rows, px.mask, x)
+        if bool(any_big):
             x, kkt = solve(rows, n, u)
     return x, kkt
 
 
 def _lowpass_rows_cuda(rig, table, noise, sweeps, px, n, rows, x):
     """The photoreceptor model's event rows linearised at `x` (JAX `(B, M)`) by the
-    kernel of :mod:`._cuda_noise` — `_chunk_rows(..., x0=x)`'s `events` without
+    kernel of :mod:`._cuda_lowpass` — `_chunk_rows(..., x0=x)`'s `events` without
     JAX's `(B, grid, M+1)` scan — as a JAX array. It runs on numba's stream: the
     next kernel launch there sees it; the solve after it waits for both."""
     from . import _cuda_kernel as ck
-    from . import _cuda_noise as cl
+    from . import _cuda_lowpass as cl
 
     par, g_n = cl.lowpass_params(rig, table, noise, sweeps)
     jax.block_until_ready((px, n, rows.log_weight, x, table.values))
@@ -634,9 +634,7 @@ def reconstruct(
       `"cuda"` (JAX forms each chunk's rows on a CUDA GPU, the kernel of
       :mod:`._cuda_kernel` their Gram matrices and box QPs in the GPU's on-chip
       memory, float32, each chunk's rows formed while the kernel solves the one
-      before; the noise model's photoreceptor rows and robust weights by the
-      kernels of :mod:`._cuda_noise`; needs numba's CUDA target, the active-set
-      solver and a float32 rig;
+      before; the photoreceptor pass's rows by the kernel of :mod:`._cuda_lowpass`; needs numba's CUDA target, the active-set solver and a float32 rig;
       on an H100 a warm whole sweep 1.34× faster than jax; the compiled kernel is
       kept in numba's disk cache) or `"auto"` (default): fused where it applies and the solve
       would run on a CPU, else JAX; on a CUDA GPU cuda for calls of at least

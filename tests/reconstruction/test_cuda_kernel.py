@@ -142,7 +142,7 @@ def test_reconstruct_backend_cuda_equals_jax_ideal():
 @pytest.mark.slow
 def test_reconstruct_backend_cuda_equals_jax_realistic():
     """The same with the realistic preset: the photoreceptor pass (rows relinearised
-    at the kernel's answer, by the kernel of `_cuda_noise`) and the robust
+    at the kernel's answer, by the kernel of `_cuda_lowpass`) and the robust
     reweighting (the kernel's row weights); with one pixel per chunk, the chunks'
     pipeline of the noise path and the device's fill and deblurring.
     Its hot pixels (here the third: its events are dropped, its spectrum filled in)
@@ -273,7 +273,7 @@ import numpy as np
 import jax.numpy as jnp
 import jax.random as jr
 import evhsi_jax as ev
-from evhsi_jax._reconstruct import _pipeline as pl, _cuda_noise as cl, _cuda_kernel as ck
+from evhsi_jax._reconstruct import _pipeline as pl, _cuda_lowpass as cl, _cuda_kernel as ck
 from evhsi_jax._reconstruct._pixels import group_pixels
 
 assert ck.simulated()
@@ -299,25 +299,17 @@ x0 = jnp.asarray(np.random.default_rng(0).uniform(0.1, 0.9, (pix.size, 8)), jnp.
 ref = pl._chunk_rows(rig, table, cfg, px, 1, noise_j, x0)[0].events
 par, g_n = cl.lowpass_params(rig, table, noise, 1)
 got = cl.lowpass_rows(px, n, rows.log_weight, x0, table.values, par, g_n)
-# The robust weights of those rows at a spectrum that fits some events badly.
-rows_lp = rows._replace(events=ref)
-x1 = x0.at[:, :4].multiply(1.6)
-u_ref, big_ref = pl._huber_weights(cfg, rows_lp, px.mask, x1)
-u, flag = cl.huber_weights(rows_lp, n, x1, cfg.robust_c, cfg.robust_reject)
 print(json.dumps({"got": np.asarray(got).tolist(), "ref": np.asarray(ref).tolist(),
-                  "n": np.asarray(n).tolist(), "u": np.asarray(u).tolist(),
-                  "u_ref": np.asarray(u_ref).tolist(), "flag": int(cl.is_set(flag)),
-                  "big_ref": bool(big_ref)}))
+                  "n": np.asarray(n).tolist()}))
 """
 
 
 def test_photoreceptor_rows_kernel_matches_jax():
-    """The photoreceptor pass's rows by the kernel of `_cuda_noise` (one warp walks
+    """The photoreceptor pass's rows by the kernel of `_cuda_lowpass` (one warp walks
     a pixel's time grid; here 4 simulated threads, 96 grid points) against JAX's
     `_lowpass_rows` (`_chunk_rows` with `x0`): per-pixel thresholds, a pixel with a
     shifted clock, padding rows zero. Only rounding may differ (recursion against
-    JAX's associative scan). Then the robust weights' kernel on those rows against
-    `_pipeline._huber_weights`."""
+    JAX's associative scan)."""
     env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1")
     res = subprocess.run(
         [sys.executable, "-c", LOWPASS], env=env, capture_output=True, text=True,
@@ -333,9 +325,3 @@ def test_photoreceptor_rows_kernel_matches_jax():
     for p, k in enumerate(n):
         assert np.all(got[p, k:] == 0.0)
         assert np.all(np.abs(got[p, :k]).max(axis=1) > 0)
-    # The reweighting's kernel: JAX's Huber weights (robust scale by the median),
-    # 1 on padding rows, and the flag of any weight below 1.
-    u, u_ref = np.array(out["u"]), np.array(out["u_ref"])
-    np.testing.assert_allclose(u, u_ref, rtol=1e-4, atol=1e-6)
-    assert out["flag"] == out["big_ref"] is True
-    assert (u < 1.0).any() and (u == 1.0).any()

@@ -1,5 +1,4 @@
-"""CUDA kernels of the noise model's passes on the GPU path (`backend="cuda"`): the
-photoreceptor pass's rows and the robust reweighting's weights.
+"""CUDA kernel of the photoreceptor pass's rows on the GPU path (`backend="cuda"`).
 
 With a photoreceptor low-pass in the noise model, the reconstruction solves once with
 delay-shifted events, then replaces each event row by the low-passed sensor model
@@ -25,14 +24,6 @@ through memory:
    $ΔF_{L_0} - ΔF_g\\cdot x_0 - σ_k C$ (a warp sum) and the noise weight of its
    event.
 
-The **robust weights** (:func:`huber_weights`: `_pipeline._huber_weights` — each
-event row's residual in standard deviations, scaled by the pixel's robust spread,
-1.4826 × the median |z|, the Huber weight and the rejection) are a second kernel, one
-warp per pixel: the median is found by ranks (each thread counts, for its own
-residuals, how many of the pixel's are smaller), so the noise path's chunk runs on
-numba's stream from its first rows to its answers, and JAX's one stream is left to
-the next chunk's rows (README, "One GPU").
-
 The rows are those of `pixel_system(..., x0=x)` (float32; the filter runs as a
 recursion instead of JAX's scan, so they differ by rounding: tested against it in
 numba's CUDA simulator, `tests/reconstruction/test_cuda_kernel.py`). Only the linear
@@ -57,10 +48,15 @@ SIM_THREADS = 4
 N_PAR = 13
 
 
-def _warp_sum(nt: int, sim: bool):
-    """`wsum(v, t, buf, y)`: the sum of `v` over the `nt` threads of pixel `y` of the
-    block — warp shuffles on a GPU, through the shared `buf` `(ppb, nt)` with
-    barriers in the simulator (which has no shuffles)."""
+@functools.cache
+def make_lowpass_kernel(m: int, nt: int = THREADS, ppb: int = PIXELS_PER_BLOCK):
+    """The kernel for M = `m` channels, `nt` threads per pixel and `ppb` pixels per
+    block (compile-time). On a GPU `nt` is 32 (warp shuffles); the simulator takes
+    any `nt` with `ppb` = 1 (its sums go through shared memory with barriers)."""
+    m1 = m + 1
+    nv = -(-m1 // nt)  # filter entries per thread
+    sim = simulated()
+
     if sim:
 
         @cuda.jit(device=True)
@@ -80,19 +76,6 @@ def _warp_sum(nt: int, sim: bool):
             for off in (16, 8, 4, 2, 1):
                 v += cuda.shfl_xor_sync(0xFFFFFFFF, v, off)
             return v
-
-    return wsum
-
-
-@functools.cache
-def make_lowpass_kernel(m: int, nt: int = THREADS, ppb: int = PIXELS_PER_BLOCK):
-    """The kernel for M = `m` channels, `nt` threads per pixel and `ppb` pixels per
-    block (compile-time). On a GPU `nt` is 32 (warp shuffles); the simulator takes
-    any `nt` with `ppb` = 1 (its sums go through shared memory with barriers)."""
-    m1 = m + 1
-    nv = -(-m1 // nt)  # filter entries per thread
-    sim = simulated()
-    wsum = _warp_sum(nt, sim)
 
     @cuda.jit(device=True, inline=True)
     def grid_pos(tq, t0, dt, g_last):
@@ -298,124 +281,3 @@ def lowpass_rows(px, ev_n, w_log, x0, table_values, par, g_n: int):
         as_cuda(table_values), _par_on_device(par), np.int32(g_n), out,
     )  # fmt: skip
     return out
-
-
-@functools.cache
-def make_huber_kernel(m: int, nt: int = THREADS, ppb: int = PIXELS_PER_BLOCK):
-    """The robust weights' kernel for M = `m` (see :func:`make_lowpass_kernel` for
-    `nt` and `ppb`)."""
-    sim = simulated()
-
-    wsum = _warp_sum(nt, sim)
-
-    if sim:
-
-        @cuda.jit(device=True)
-        def sync():
-            cuda.syncthreads()
-
-    else:
-
-        @cuda.jit(device=True)
-        def sync():
-            cuda.syncwarp()
-
-    @_kernel_jit(cuda.jit, {}, CACHE and not sim)
-    def kernel(ev, sigma, ev_n, x, robust_c, robust_reject, u, flag):
-        t = cuda.threadIdx.x
-        y = cuda.threadIdx.y
-        b = cuda.blockIdx.x * ppb + y
-        if b >= u.shape[0]:
-            return
-        buf = cuda.shared.array((ppb, nt), float32)
-        n = ev_n[b]
-        kmax = u.shape[1]
-        # |z| of each event row (a thread per row), kept in u for the ranks.
-        for k in range(t, kmax, nt):
-            if k < n:
-                z = ev[b, k, m]
-                for c in range(m):
-                    z += ev[b, k, c] * x[b, c]
-                u[b, k] = abs(z / sigma[b, k])
-        sync()  # (the ranks read the other threads' values)
-        # The median of the n values: the order statistics (n − 1) // 2 and n // 2.
-        lo_r = (n - 1) // 2
-        hi_r = n // 2
-        part_lo = float32(0.0)
-        part_hi = float32(0.0)
-        for k in range(t, n, nt):
-            v = u[b, k]
-            below = 0
-            same = 0
-            for j in range(n):
-                w = u[b, j]
-                if w < v:
-                    below += 1
-                elif w == v:
-                    same += 1
-            # v holds ranks [below, below + same): the first thread with it gives it
-            if below <= lo_r < below + same:
-                first = True
-                for j in range(k):
-                    if u[b, j] == v:
-                        first = False
-                        break
-                if first:
-                    part_lo += v
-            if below <= hi_r < below + same:
-                first = True
-                for j in range(k):
-                    if u[b, j] == v:
-                        first = False
-                        break
-                if first:
-                    part_hi += v
-        med = float32(0.5) * (wsum(part_lo, t, buf, y) + wsum(part_hi, t, buf, y))
-        scale = max(float32(1.4826) * med, float32(1.0))
-        big = 0
-        sync()  # (every rank read before the weights overwrite the values)
-        for k in range(t, kmax, nt):
-            w = float32(1.0)
-            if k < n:
-                a = u[b, k] / scale
-                if a > robust_c:
-                    w = math.sqrt(robust_c / a)
-                    big = 1
-                if a > robust_reject:
-                    w = float32(0.0)
-            u[b, k] = w
-        if big:
-            cuda.atomic.max(flag, 0, 1)
-
-    return kernel
-
-
-def huber_weights(rows, ev_n, x, robust_c: float, robust_reject: float):
-    """`_pipeline._huber_weights` of a chunk by a kernel: the event rows' weights
-    `(B, K)` float32 (1 past each pixel's `ev_n` events) and a flag `(1,)` int32,
-    1 when any row's weight is below 1 (numba device arrays, host arrays under the
-    simulator; written on numba's default stream). `rows`: the chunk's
-    :class:`._problem.PixelRows` (`events`, `sigma`), `x` `(B, M)` its answers; the
-    JAX inputs must be ready."""
-    b, k = rows.sigma.shape
-    m = x.shape[1]
-    if simulated():
-        nt, ppb = SIM_THREADS, 1
-        u = np.zeros((b, k), np.float32)
-        flag = np.zeros(1, np.int32)
-    else:
-        nt, ppb = THREADS, PIXELS_PER_BLOCK
-        u = cuda.device_array((b, k), np.float32)
-        flag = cuda.to_device(np.zeros(1, np.int32))
-    kern = make_huber_kernel(m, nt, ppb)
-    kern[-(-b // ppb), (nt, ppb)](
-        as_cuda(rows.events), as_cuda(rows.sigma), as_cuda(ev_n), as_cuda(x),
-        np.float32(robust_c), np.float32(robust_reject), u, flag,
-    )  # fmt: skip
-    return u, flag
-
-
-def is_set(flag) -> bool:
-    """Whether :func:`huber_weights`' flag is set (a device read: it waits for
-    numba's stream, not JAX's)."""
-    return bool((flag if simulated() else flag.copy_to_host())[0])
