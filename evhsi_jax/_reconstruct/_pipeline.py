@@ -634,7 +634,9 @@ def reconstruct(
       `"cuda"` (JAX forms each chunk's rows on a CUDA GPU, the kernel of
       :mod:`._cuda_kernel` their Gram matrices and box QPs in the GPU's on-chip
       memory, float32, each chunk's rows formed while the kernel solves the one
-      before; the photoreceptor pass's rows by the kernel of :mod:`._cuda_lowpass`; needs numba's CUDA target, the active-set solver and a float32 rig;
+      before; the photoreceptor pass's rows by the kernel of
+      :mod:`._cuda_lowpass`; needs numba's CUDA target, the active-set solver and
+      a float32 rig;
       on an H100 a warm whole sweep 1.34× faster than jax; the compiled kernel is
       kept in numba's disk cache) or `"auto"` (default): fused where it applies and the solve
       would run on a CPU, else JAX; on a CUDA GPU cuda for calls of at least

@@ -330,7 +330,11 @@ def test_device_lists_drop_the_screened_events_themselves():
     # The device's grouping takes the screening's mask instead of the kept events
     # (no host copy of 25 M events): the events it drops sort past the last pixel,
     # and every pixel's list is the one of the screened stream.
-    from evhsi_jax._reconstruct._pipeline import _screen_mask, noise_model, screen_events
+    from evhsi_jax._reconstruct._pipeline import (
+        _screen_mask,
+        noise_model,
+        screen_events,
+    )
     from evhsi_jax._reconstruct._pixels import DeviceLists
 
     rig = ev.Rig(noise_rate_hz=40.0, hot_pixel_fraction=0.05, timestamp_jitter_us=5.0)
