@@ -45,7 +45,7 @@ import jax
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
-from _common import matmul_gflops, write_json
+from _common import device_header, write_json
 
 import evhsi_jax as ev
 from evhsi_jax._base import njit
@@ -137,16 +137,7 @@ def main():
     ap.add_argument("--out", default="experiments/results/bench_gpu_kernel.json")
     args = ap.parse_args()
     h, w = ev.forward.parse_size(args.size)
-    dev = jax.devices()[0]
-    report = {
-        "size": [h, w],
-        "device": getattr(dev, "device_kind", str(dev)),
-        "jax": jax.__version__,
-        "simulated_cuda": ck.simulated(),
-        "matmul_gflops_f32": matmul_gflops(
-            1024 if jax.default_backend() == "cpu" else 8192
-        ),
-    }
+    report = {**device_header(h, w), "simulated_cuda": ck.simulated()}
     print(report, flush=True)
     rig = ev.Rig()
     scene = ev.load_scene("colorchecker", (h, w))

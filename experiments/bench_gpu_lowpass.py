@@ -29,14 +29,12 @@ writes `experiments/results/bench_gpu_lowpass.json`.
 from __future__ import annotations
 
 import argparse
-import statistics
-import time
 
 import jax
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
-from _common import matmul_gflops, write_json
+from _common import device_header, median_time, write_json
 
 import evhsi_jax as ev
 from evhsi_jax._reconstruct import _cuda_kernel as ck
@@ -44,16 +42,6 @@ from evhsi_jax._reconstruct import _cuda_lowpass as cl
 from evhsi_jax._reconstruct import _pipeline as pipe
 from evhsi_jax._reconstruct._pixels import DeviceLists, bucket_plan
 from evhsi_jax._reconstruct._problem import spectral_prior_matrix
-
-
-def median_s(fn, repeats):
-    fn()  # first call: compiles
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return statistics.median(times), times
 
 
 def main():
@@ -65,13 +53,7 @@ def main():
     ap.add_argument("--out", default="experiments/results/bench_gpu_lowpass.json")
     args = ap.parse_args()
     h, w = ev.forward.parse_size(args.size)
-    dev = jax.devices()[0]
-    report = {
-        "size": [h, w],
-        "device": getattr(dev, "device_kind", str(dev)),
-        "jax": jax.__version__,
-        "matmul_gflops_f32": matmul_gflops(1024 if jax.default_backend() == "cpu" else 8192),
-    }
+    report = device_header(h, w)
     rig = ev.Rig(sensor="realistic")
     scene = ev.load_scene("colorchecker", (h, w))
     events, info = ev.simulate(scene, rig, sweeps=1, key=jr.key(0), return_info=True)
@@ -103,8 +85,8 @@ def main():
         ck.synchronize()
         return out
 
-    report["kernel_s"], report["kernel_times_s"] = median_s(kernel, args.repeats)
-    report["solve_s"], _ = median_s(lambda: (solve(), ck.synchronize()), args.repeats)
+    report["kernel_s"] = median_time(kernel, args.repeats)
+    report["solve_s"] = median_time(lambda: (solve(), ck.synchronize()), args.repeats)
     j = min(args.jax_pixels, int(size))
     sub = jax.tree.map(lambda a: a[:j], px)
     n_sub, lw_sub, x_sub = n[:j], rows.log_weight[:j], x[:j]
@@ -115,8 +97,8 @@ def main():
         return jax.block_until_ready(r.events)
 
     report["jax_pixels"] = j
-    report["jax_s"], _ = median_s(jax_rows, args.repeats)
-    report["kernel_sub_s"], _ = median_s(
+    report["jax_s"] = median_time(jax_rows, args.repeats)
+    report["kernel_sub_s"] = median_time(
         lambda: kernel(sub, n_sub, lw_sub, x_sub), args.repeats
     )
     ref = np.asarray(jax_rows())
