@@ -1,8 +1,10 @@
 """Where the reconstruction's time goes, stage by stage (a diagnosis, not an API use).
 
 Setup: one sweep of the ColorChecker at `--size` (default 96×144), paper rig, ideal
-sensor, nominal thresholds, float32, on JAX's default device. Timed, each the median of
-`--repeats` warm runs in this process:
+sensor, nominal thresholds, float32, on JAX's default device; with `--noise`, a sensor
+with threshold noise 0.01 and 5 µs jitter reconstructed with that noise model (its
+weighted rows and dark-channel prior; no reweighting in the timed stages). Timed, each
+the median of `--repeats` warm runs in this process:
 
 - host: screening (`screen_events`) and grouping by pixel (`group_pixels`), with the
   numba kernels and with the NumPy reference;
@@ -13,7 +15,7 @@ sensor, nominal thresholds, float32, on JAX's default device. Timed, each the me
 - the same run's float32 matmul GFLOP/s (`_common.matmul_gflops`).
 
     python experiments/profile_pipeline.py [--size 96x144] [--repeats 3]
-        [--host-backends numpy,numba]
+        [--host-backends numpy,numba] [--noise]
 
 Every device stage is traced under the reconstruction's matmul precision
 (`_pipeline.MATMUL_PRECISION`: full float32 on a GPU, as `reconstruct` runs them).
@@ -53,21 +55,26 @@ def main():
         help="host bookkeeping timed with these (numpy: the reference, slow on large "
         "captures)",
     )  # fmt: skip
+    ap.add_argument("--noise", action="store_true",
+                    help="threshold noise 0.01, jitter 5 µs, and their noise model")  # fmt: skip
     args = ap.parse_args()
     h, w = ev.forward.parse_size(args.size)
-    rig = ev.Rig()
+    rig = ev.Rig(threshold_noise=0.01, timestamp_jitter_us=5.0) if args.noise else ev.Rig()
+    noise = pipe.noise_model(rig)
+    noise_j = None if noise is None else jax.numpy.asarray(noise, jax.numpy.float32)
     events = ev.simulate(ev.load_scene("colorchecker", (h, w)), rig, key=jr.key(0))
     chunk, sub = pipe.batch_sizes(None, None)
-    out = {"size": [h, w], "events": len(events), "batch_sizes": [chunk, sub]}
+    out = {"size": [h, w], "events": len(events), "batch_sizes": [chunk, sub],
+           "noise_model": None if noise is None else [float(v) for v in noise]}  # fmt: skip
     out["matmul_gflops"] = matmul_gflops()
     wanted = args.host_backends.split(",")
     for backend in [b for b in wanted if b != "numba" or numba_available()]:
         with use_backend(backend):
             screen = median_time(
-                lambda: pipe.screen_events(events, rig, 0, None, 1, None)[2],
+                lambda: pipe.screen_events(events, rig, 0, noise, 1, None)[2],
                 args.repeats,
             )
-            screened = pipe.screen_events(events, rig, 0, None, 1, None)[0]
+            screened = pipe.screen_events(events, rig, 0, noise, 1, None)[0]
             group = median_time(
                 lambda: len(
                     group_pixels(
@@ -96,7 +103,7 @@ def main():
     @eqx.filter_jit
     def rows(px):
         def one(p):
-            return pixel_system(rig, table, cfg, p, 1, return_rows=True)
+            return pixel_system(rig, table, cfg, p, 1, noise=noise_j, return_rows=True)
 
         with jax.default_matmul_precision(pipe.MATMUL_PRECISION):
             return jax.lax.map(jax.vmap(one), split(px, sub))

@@ -30,6 +30,7 @@ from ._fused import FusedProblem, fused_supported, solve_fused
 from ._pixels import DeviceLists, PixelEvents, bucket_plan, group_pixels, pixel_lists
 from ._problem import (
     ProblemConfig,
+    dark_rows,
     lit_interval_us,
     pixel_system,
     spectral_prior_matrix,
@@ -352,6 +353,11 @@ def _chunk_rows(rig, table, cfg: ProblemConfig, px: PixelEvents, sweeps: int,
     the CUDA kernel."""
     with jax.default_matmul_precision(MATMUL_PRECISION):
         rows = _batch_rows(rig, table, cfg, px, sweeps, noise, x0)
+    if rows.dark is not None:  # the kernel takes rows: the dark prior's too
+        rows = rows._replace(
+            drift=jnp.concatenate([rows.drift, dark_rows(rows.dark)], axis=1),
+            dark=None,
+        )
     return rows, jnp.sum(px.mask, axis=1, dtype=jnp.int32)
 
 

@@ -427,15 +427,37 @@ def pixel_system(
         # share of the rows' information the noise took (0 for an ideal sensor).
         light = jnp.max(table.values, axis=0)
         dim = jnp.minimum(jnp.max(light) / jnp.maximum(light, 1e-12) - 1.0, 1e4)
-        d1 = jnp.eye(m, dtype=dtype)[1:] - jnp.eye(m, dtype=dtype)[:-1]
-        wd = jnp.sqrt(cfg.alpha_dark * noisy * 0.5 * (dim[1:] + dim[:-1])) / s_hat
-        int_rows = jnp.concatenate(
-            [int_rows, jnp.pad(d1 * wd[:, None], ((0, 0), (0, 1)))], axis=0
-        )
+        # Its rows (x_{c+1} − x_c)·wd_c add a tridiagonal term to the Gram matrix
+        # (`dark_gram`): kept as the weights wd², not as M−1 dense rows.
+        dark = cfg.alpha_dark * noisy * 0.5 * (dim[1:] + dim[:-1]) / s_hat**2
+    else:
+        dark = None
     if return_rows:
-        return PixelRows(ev_rows, int_rows, spec_w, s_hat, sigma_ev, w_log)
+        return PixelRows(ev_rows, int_rows, spec_w, s_hat, sigma_ev, w_log, dark)
     rows = jnp.concatenate([ev_rows, int_rows], axis=0)
-    return _system(cfg, m, rows.T @ rows, spec_w, s_hat, return_gram)
+    gram = dark_gram(rows.T @ rows, dark)
+    return _system(cfg, m, gram, spec_w, s_hat, return_gram)
+
+
+def dark_gram(gram, dark):
+    """`gram` `(M+1, M+1)` plus the dark-channel prior's Gram term for weights `dark`
+    `(M−1,)` (None: none): Σ_c dark_c (e_{c+1} − e_c)(e_{c+1} − e_c)ᵀ, tridiagonal —
+    what its M−1 rows would add, without forming them."""
+    if dark is None:
+        return gram
+    c = jnp.arange(dark.shape[0])
+    gram = gram.at[c, c].add(dark).at[c + 1, c + 1].add(dark)
+    return gram.at[c, c + 1].add(-dark).at[c + 1, c].add(-dark)
+
+
+def dark_rows(dark):
+    """The dark-channel prior's rows `(…, M−1, M+1)` for weights `dark` `(…, M−1)`:
+    (x_{c+1} − x_c)·√dark_c (the zero last column acts on the constant) — for a
+    consumer that takes rows only (the CUDA kernel)."""
+    n = dark.shape[-1]
+    d1 = jnp.eye(n + 1, dtype=dark.dtype)[1:] - jnp.eye(n + 1, dtype=dark.dtype)[:-1]
+    rows = d1 * jnp.sqrt(dark)[..., :, None]
+    return jnp.pad(rows, [(0, 0)] * (rows.ndim - 1) + [(0, 1)])
 
 
 class PixelRows(NamedTuple):
@@ -446,7 +468,9 @@ class PixelRows(NamedTuple):
     units) before its noise weight: a weighted row's residual divided by it is the
     residual in standard deviations. `log_weight` `(k,)`, with a noise model: each
     event's weight in the photoreceptor model's rows (:func:`_lowpass_rows`, whose
-    rows are in log units: the noise weight alone), None without one."""
+    rows are in log units: the noise weight alone), None without one. `dark`
+    `(M−1,)`: the dark-channel prior's weights (:func:`dark_gram`; its rows are not
+    in `drift`), None without it."""
 
     events: Array
     drift: Array
@@ -454,13 +478,14 @@ class PixelRows(NamedTuple):
     s_hat: Array
     sigma: Array
     log_weight: Array | None = None
+    dark: Array | None = None
 
 
 def system_from_rows(cfg: ProblemConfig, rows: PixelRows, row_weight=None):
     """$(Q, q)$ of :func:`pixel_system` from its rows, the event rows scaled by
     `row_weight` `(k,)` (e.g. robust-loss weights; default 1)."""
     ev = rows.events if row_weight is None else rows.events * row_weight[:, None]
-    gram = ev.T @ ev + rows.drift.T @ rows.drift
+    gram = dark_gram(ev.T @ ev + rows.drift.T @ rows.drift, rows.dark)
     m = gram.shape[0] - 1
     return _system(cfg, m, gram, rows.spec_weight, rows.s_hat, False)
 

@@ -219,6 +219,47 @@ def test_noise_weights_match_a_numpy_reference():
     np.testing.assert_allclose(got, want, rtol=2e-4, atol=1e-7)
 
 
+def test_dark_prior_as_a_tridiagonal_term_is_its_rows():
+    # The dark-channel prior (a noise model only) is kept as weights and added to the
+    # Gram matrix as a tridiagonal term (`dark_gram`); its rows (`dark_rows`, what
+    # the CUDA kernel takes) must give the same matrix, and pixel_system's Q must be
+    # that of the rows with the prior's rows appended (float64: exact up to the sum's
+    # order).
+    import jax
+
+    from evhsi_jax._model._illumination import band_table
+    from evhsi_jax._reconstruct._problem import dark_gram, dark_rows, system_from_rows
+
+    rng = np.random.default_rng(3)
+    with jax.enable_x64(True):
+        d = jnp.asarray(rng.uniform(0.0, 2.0, 7))
+        g = jnp.asarray(rng.normal(size=(9, 9)))
+        r = dark_rows(d)
+        assert r.shape == (7, 9)
+        np.testing.assert_allclose(dark_gram(g, d), g + r.T @ r, rtol=1e-14, atol=1e-14)
+        rig = ev.Rig(fwhm_nm=np.float64(17.5), channels=24)
+        table = band_table(rig).channels(rig.grid.sub)
+        e = ev.simulate(ev.load_scene("colorchecker", (2, 3)), rig, key=jr.key(2))
+        b = group_pixels(e, chunk_pixels=6)[0][0]
+        i = int(np.argmax(b.count))
+        px = PixelEvents(jnp.asarray(b.t_us[i]), jnp.asarray(b.polarity[i], jnp.int32),
+                         jnp.asarray(b.mask[i]), 0.0, 0.15, 0.15, 0.0)  # fmt: skip
+        cfg = ProblemConfig(alpha_dark=1e-2)
+        args = (rig, table, cfg, px, 1)
+        noise = jnp.asarray([0.01, 5.0, 0.0])
+        rows = pixel_system(*args, noise=noise, return_rows=True)
+        assert rows.dark is not None and float(jnp.max(rows.dark)) > 0
+        q, qv, _ = pixel_system(*args, noise=noise)
+        dense = rows._replace(
+            drift=jnp.concatenate([rows.drift, dark_rows(rows.dark)]), dark=None
+        )
+        q2, qv2, _ = system_from_rows(cfg, dense)
+        np.testing.assert_allclose(q, q2, rtol=1e-12, atol=1e-12 * float(jnp.abs(q).max()))
+        np.testing.assert_allclose(qv, qv2, rtol=1e-12, atol=1e-15)
+        q3, _, _ = system_from_rows(cfg, rows)
+        np.testing.assert_allclose(q3, q, rtol=1e-12, atol=1e-12 * float(jnp.abs(q).max()))
+
+
 def test_linearised_lowpass_rows_explain_a_lowpassed_capture():
     # At the true spectrum the linearised low-pass rows leave residuals far below the
     # delay-shift rows' (both in log units ≈ relative intensity).
