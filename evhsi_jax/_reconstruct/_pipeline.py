@@ -1095,109 +1095,109 @@ def _screen_mask(events, rig, t_start_us, noise, sweeps, hot_map=None, margin_us
         return events.y[sel].astype(np.int64) * w + events.x[sel]
 
     n = len(events)
-    if use_numba():  # (the NumPy code below is the reference)
+    numba = use_numba()  # (the NumPy code is the reference)
+    if numba:
         from ._group_jit import drop_hot, lit_mask
 
         inside = np.empty(n, bool)
         lo_col, hi_col = t_arrive - margin, t_leave + margin
-        starts = range(0, n, SCREEN_SLICE)
-        threaded = len(starts) > 1 and shard.usable_cores() > 1
-
-        def in_parallel(part):
-            if not threaded:
-                return [part(i0) for i0 in starts]
-            with concurrent.futures.ThreadPoolExecutor(shard.usable_cores()) as pool:
-                return list(pool.map(part, starts))
-
-        def lit(i0):
-            i1 = min(i0 + SCREEN_SLICE, n)
-            lit_mask(events.x[i0:i1], events.t_us[i0:i1], np.int64(t_start_us),
-                     period, lo_col, hi_col, inside[i0:i1])  # fmt: skip
-
-        in_parallel(lit)
-        out = np.flatnonzero(~inside)  # few: noise and hot pixels' events
-        outside = np.bincount(flat_pixel(out), minlength=h * w)
-        hot |= (outside >= 2) & (outside >= 2 * sweeps)
-        if not hot.any():
-            n_kept = n - out.size
-            return (None if out.size == 0 else inside), n_kept, hot.reshape(h, w), out.size
+        _in_screen_slices(n, lambda i0, i1: lit_mask(
+            events.x[i0:i1], events.t_us[i0:i1], np.int64(t_start_us), period,
+            lo_col, hi_col, inside[i0:i1],
+        ))  # fmt: skip
+    else:
+        x = events.x.astype(np.int64)
+        local = np.mod(events.t_us.astype(np.float64) - t_start_us, period)
+        lo, hi = t_arrive[x] - margin, t_leave[x] + margin
+        # The interval may wrap around the period (local times are taken modulo P).
+        inside = (
+            ((local >= lo) & (local <= hi))
+            | ((local + period >= lo) & (local + period <= hi))
+            | ((local - period >= lo) & (local - period <= hi))
+        )
+    out = np.flatnonzero(~inside)  # few: noise and hot pixels' events
+    outside = np.bincount(flat_pixel(out), minlength=h * w)
+    hot |= (outside >= 2) & (outside >= 2 * sweeps)
+    if not hot.any():
+        return (None if out.size == 0 else inside), n - out.size, hot.reshape(h, w), out.size
+    if numba:
         keep = np.empty(n, bool)
         hot_ro = readonly(hot, bool)
-
-        def unhot(i0):
-            i1 = min(i0 + SCREEN_SLICE, n)
-            return drop_hot(readonly(events.x[i0:i1], events.x.dtype),
-                            readonly(events.y[i0:i1], events.y.dtype),
-                            readonly(inside[i0:i1], bool), hot_ro, np.int64(w),
-                            keep[i0:i1])  # fmt: skip
-
-        n_kept = int(sum(in_parallel(unhot)))
-        return keep, n_kept, hot.reshape(h, w), n - n_kept
-    x = events.x.astype(np.int64)
-    local = np.mod(events.t_us.astype(np.float64) - t_start_us, period)
-    lo, hi = t_arrive[x] - margin, t_leave[x] + margin
-    # The interval may wrap around the period (local times are taken modulo P).
-    inside = (
-        ((local >= lo) & (local <= hi))
-        | ((local + period >= lo) & (local + period <= hi))
-        | ((local - period >= lo) & (local - period <= hi))
-    )
-    outside = np.bincount(flat_pixel(~inside), minlength=h * w)
-    hot |= (outside >= 2) & (outside >= 2 * sweeps)
-    keep = inside & ~hot[flat_pixel()] if hot.any() else inside
-    n_kept = int(keep.sum())
+        n_kept = int(sum(_in_screen_slices(n, lambda i0, i1: drop_hot(
+            readonly(events.x[i0:i1], events.x.dtype),
+            readonly(events.y[i0:i1], events.y.dtype), readonly(inside[i0:i1], bool),
+            hot_ro, np.int64(w), keep[i0:i1],
+        ))))  # fmt: skip
+    else:
+        keep = inside & ~hot[flat_pixel()]
+        n_kept = int(keep.sum())
     return (None if n_kept == n else keep), n_kept, hot.reshape(h, w), n - n_kept
+
+
+def _in_screen_slices(n: int, part) -> list:
+    """`[part(i0, i1)]` over the slices of `SCREEN_SLICE` events covering [0, n), in
+    order, on the usable cores when there are several slices (numba's kernels
+    release the GIL)."""
+    bounds = [(i0, min(i0 + SCREEN_SLICE, n)) for i0 in range(0, n, SCREEN_SLICE)]
+    if len(bounds) < 2 or shard.usable_cores() < 2:
+        return [part(*b) for b in bounds]
+    with concurrent.futures.ThreadPoolExecutor(shard.usable_cores()) as pool:
+        return list(pool.map(lambda b: part(*b), bounds))
 
 
 def _take_kept(events, keep, n_kept):
     """`events.take(keep)`: with numba, slices compacted on the usable cores (each
     slice's kept events go to its offset), else NumPy's boolean indexing."""
     n = len(events)
-    if not use_numba() or n < 2 * SCREEN_SLICE or shard.usable_cores() == 1:
+    if not use_numba() or n <= SCREEN_SLICE or shard.usable_cores() == 1:
         return events.take(keep)
     from ._group_jit import compact_events
 
-    starts = list(range(0, n, SCREEN_SLICE))
-    counts = [int(np.count_nonzero(keep[i0 : i0 + SCREEN_SLICE])) for i0 in starts]
-    offsets = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    counts = _in_screen_slices(n, lambda i0, i1: int(np.count_nonzero(keep[i0:i1])))
+    offsets = np.cumsum([0] + counts[:-1])
     src = (events.x, events.y, events.p, events.t_us)
     out = tuple(np.empty(n_kept, a.dtype) for a in src)
-
-    def part(i):
-        i0, i1 = starts[i], min(starts[i] + SCREEN_SLICE, n)
-        compact_events(
-            readonly(keep[i0:i1], bool), *(readonly(a[i0:i1], a.dtype) for a in src),
-            *out, np.int64(offsets[i]),
-        )  # fmt: skip
-
-    with concurrent.futures.ThreadPoolExecutor(shard.usable_cores()) as pool:
-        list(pool.map(part, range(len(starts))))
+    _in_screen_slices(n, lambda i0, i1: compact_events(
+        readonly(keep[i0:i1], bool), *(readonly(a[i0:i1], a.dtype) for a in src),
+        *out, np.int64(offsets[i0 // SCREEN_SLICE]),
+    ))  # fmt: skip
     return dataclasses.replace(events, x=out[0], y=out[1], p=out[2], t_us=out[3])
 
 
 def _fill_from_neighbours(cube, hot, counts):
     """Each hot pixel's spectrum: the median of its 8 neighbours that are neither hot
-    nor without events (or of all solved pixels when none is)."""
+    nor without events (or of all solved pixels when none is): :func:`_hot_fill` of
+    the host's cube `(H, W, M)`, a new cube."""
     h, w, m = cube.shape
-    good = ~hot & (counts > 0)
-    out = cube.copy()
-    for y, x in zip(*np.nonzero(hot)):
-        ys, xs = slice(max(y - 1, 0), y + 2), slice(max(x - 1, 0), x + 2)
-        nb = cube[ys, xs][good[ys, xs]]
-        if nb.size == 0:
-            nb = cube[good] if good.any() else cube.reshape(-1, m)
-        out[y, x] = np.median(nb, axis=0)
-    return out
+    flat = cube.reshape(h * w, m)
+    at, vals = _hot_fill(hot, counts, lambda idx: flat[idx], lambda sel: flat[sel])
+    out = flat.copy()
+    n = int(np.count_nonzero(hot))
+    out[at[:n]] = vals[:n]
+    return out.reshape(h, w, m)
 
 
 def _fill_from_neighbours_device(cube, hot, counts):
     """:func:`_fill_from_neighbours` of a JAX cube `(H·W, M)` on its device: the
     hot pixels' 3×3 neighbourhoods are gathered there and brought over (a few
-    hundred kB), their medians taken here as the host's fill takes them (the same
-    values), and set there. `hot`, `counts`: `(H, W)` host arrays. The gather and
-    the scatter are padded to a power of two of hot pixels (few compiled shapes)."""
+    hundred kB), their medians taken here by the host's code (the same values), and
+    set there. `hot`, `counts`: `(H, W)` host arrays."""
+    at, vals = _hot_fill(
+        hot, counts, lambda idx: np.asarray(_gather_rows(cube, jax.device_put(idx))),
+        lambda sel: np.asarray(cube)[sel],
+    )  # fmt: skip
+    return _set_rows(cube, *jax.device_put((at, vals)))
+
+
+def _hot_fill(hot, counts, gather, rows_where):
+    """The hot pixels' fill: `(at, values)`, the flat indices of the hot pixels
+    (`hot`, `counts`: `(H, W)`) and for each the median of its 8 neighbours that
+    are neither hot nor without events — or, where none is, of all such pixels (of
+    every pixel when there are none) — padded to a power of two of rows with index
+    H·W (few compiled shapes where they are gathered and set on a device).
+    `gather(idx)`: the cube's rows at the flat indices `idx` `(n, 9)` as a NumPy
+    `(n, 9, M)` array; `rows_where(mask)`: its rows where the flat `mask` is set."""
     h, w = hot.shape
-    m = cube.shape[1]
     good = ~hot & (counts > 0)
     ys, xs = np.nonzero(hot)
     n_pad = 1 << int(math.ceil(math.log2(ys.size)))
@@ -1208,20 +1208,19 @@ def _fill_from_neighbours_device(cube, hot, counts):
     use = inside & good[yc, xc]
     flat = np.zeros((n_pad, 9), np.int32)
     flat[: ys.size] = yc * w + xc
-    nb = np.asarray(_gather_rows(cube, jax.device_put(flat)))
-    vals = np.zeros((n_pad, m), np.float32)
+    nb = gather(flat)
+    vals = np.zeros((n_pad, nb.shape[2]), nb.dtype)
     whole = None
     for i in range(ys.size):
         if use[i].any():
             vals[i] = np.median(nb[i][use[i]], axis=0)
         else:  # no usable neighbour (rare): the median of all solved pixels
             if whole is None:
-                host = np.asarray(cube)
-                whole = host[good.reshape(-1)] if good.any() else host
+                whole = rows_where(good.reshape(-1) if good.any() else np.ones(h * w, bool))
             vals[i] = np.median(whole, axis=0)
     at = np.full(n_pad, h * w, np.int32)  # (padding: dropped)
     at[: ys.size] = ys * w + xs
-    return _set_rows(cube, *jax.device_put((at, vals)))
+    return at, vals
 
 
 @jax.jit

@@ -212,6 +212,18 @@ def test_device_fill_and_deblur_are_the_hosts(capture, monkeypatch):
     )
     np.testing.assert_array_equal(np.asarray(got).reshape(h, w, m), want)
     assert not np.array_equal(want, cube)
+    # By hand: (4, 5) from its 8 neighbours; (4, 2), all of whose neighbours are
+    # hot, from every solved pixel that is not hot; the corner (8, 10) from its 3
+    # neighbours less (7, 9), which has no events. The other pixels stay.
+    ring = np.ones((3, 3), bool)
+    ring[1, 1] = False
+    np.testing.assert_array_equal(want[4, 5], np.median(cube[3:6, 4:7][ring], axis=0))
+    good = ~hot & (counts > 0)
+    np.testing.assert_array_equal(want[4, 2], np.median(cube[good], axis=0))
+    corner = good[7:9, 9:11]
+    assert corner.sum() == 2
+    np.testing.assert_array_equal(want[8, 10], np.median(cube[7:9, 9:11][corner], axis=0))
+    np.testing.assert_array_equal(want[~hot], cube[~hot])
     blur = deblur_cube(want, 0.7)
     dev = np.asarray(deblur_cube_device(jnp.asarray(want), 0.7))
     np.testing.assert_allclose(dev, blur, atol=2e-6, rtol=0)
