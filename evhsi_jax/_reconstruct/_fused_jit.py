@@ -269,7 +269,7 @@ def _clear_events(evr, evlo, evhi, k):
     """Zero the kept event rows (each only over its span)."""
     for i in range(k):
         ri = evr[i]
-        for j in range(evlo[i], evhi[i]):
+        for j in range(_u(evlo[i]), _u(evhi[i])):
             ri[j] = 0.0
 
 
@@ -283,7 +283,7 @@ def _restore_drift(qm, qv, qd, qvd, first):
         qv[i] = qvd[i]
         qi = qm[i]
         di = qd[i]
-        for j in range(first[i], i + 1):
+        for j in range(_u(first[i]), _u(i + 1)):
             qi[j] = di[j]
 
 
@@ -1795,7 +1795,7 @@ def solve_pixels(
             for lane in range(nl):
                 for j in range(n_ad):
                     ar = adrs[lane, j]
-                    for c in range(adlo[lane, j], adhi[lane, j]):
+                    for c in range(_u(adlo[lane, j]), _u(adhi[lane, j])):
                         ar[c] = 0.0
             if noisy_model and par[P_ADARK] > 0.0:
                 _lane_dark(ql, fu, dark, g_da, g_sh2, nl, m)
