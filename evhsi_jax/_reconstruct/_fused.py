@@ -38,6 +38,7 @@ realistic kernel, `experiments/bench_kernel_ab.py --sensor realistic`).
 from __future__ import annotations
 
 import concurrent.futures
+import threading
 
 import numpy as np
 
@@ -190,15 +191,20 @@ def solve_fused(
     *,
     threads: int | None = None,
     progress=None,
+    out: tuple[np.ndarray, np.ndarray] | None = None,
 ):
     """Solve pixels `sel` (flat indices) from their events in pixel order (CSR:
     `starts`, `use`). Returns `(x (n, M) float64, kkt (n,), steps (n,))`; a pixel whose
-    factorisation failed has NaN x and steps −1."""
+    factorisation failed has NaN x and steps −1.
+
+    `out=(cube, kkt_all)`: the answers go into rows `sel` of these arrays (e.g. the
+    float32 cube, `(pixels, M)`, and its KKT residuals) as each block of pixels is
+    solved, by the worker that solved it; `x` and `kkt` are then returned as None.
+    A whole sweep's float64 answers are then never held at once (1280×720: 531 MB,
+    written, then copied into the cube by one thread)."""
     from . import _fused_jit as jit
 
     n, m = sel.size, prob.channels
-    x = np.empty((n, m))
-    kkt = np.empty(n)
     steps = np.empty(n, np.int64)
     args = kernel_inputs(prob, starts, use, t_sorted, s_sorted, lead, thr_on, thr_off)
     sel = np.ascontiguousarray(sel, np.int64)
@@ -206,10 +212,26 @@ def solve_fused(
     if back is not None:
         sel = sel[back]
     sel = readonly(sel, np.int64)  # (one kernel type: see kernel_inputs)
+    if out is None:
+        x, kkt = np.empty((n, m)), np.empty(n)
+    else:
+        x = kkt = None
+        scratch = threading.local()  # each worker's block of answers, reused
 
     def run(lo):
         hi = min(lo + BLOCK_PIXELS, n)
-        jit.solve_pixels(sel[lo:hi], *args, x[lo:hi], kkt[lo:hi], steps[lo:hi])
+        if out is None:
+            jit.solve_pixels(sel[lo:hi], *args, x[lo:hi], kkt[lo:hi], steps[lo:hi])
+            return hi - lo
+        if getattr(scratch, "x", None) is None:
+            scratch.x, scratch.kkt = np.empty((BLOCK_PIXELS, m)), np.empty(BLOCK_PIXELS)
+        xb, kb = scratch.x[: hi - lo], scratch.kkt[: hi - lo]
+        jit.solve_pixels(sel[lo:hi], *args, xb, kb, steps[lo:hi])
+        rows = sel[lo:hi]
+        if np.all(np.diff(rows) == 1):  # consecutive pixels: a slice, not a scatter
+            rows = slice(int(rows[0]), int(rows[-1]) + 1)
+        out[0][rows] = xb
+        out[1][rows] = kb
         return hi - lo
 
     blocks = range(0, n, BLOCK_PIXELS)
@@ -225,5 +247,7 @@ def solve_fused(
                 if progress is not None:
                     progress(done)
     if back is not None:  # the answers in the caller's order of `sel`
-        x[back], kkt[back], steps[back] = x.copy(), kkt.copy(), steps.copy()
+        steps[back] = steps.copy()
+        if out is None:
+            x[back], kkt[back] = x.copy(), kkt.copy()
     return x, kkt, steps

@@ -886,8 +886,8 @@ def reconstruct(
         cube = _fill_from_neighbours(cube.reshape(h, w, m), hot, counts.reshape(h, w))
     if deblurred:
         cube = deblur_cube(cube.reshape(h, w, m), psf)
-    if not clipped:
-        cube = np.clip(cube, 0.0, cfg.max_reflectance)
+    if not clipped:  # (in place: the cube is this call's own array)
+        np.clip(cube, 0.0, cfg.max_reflectance, out=cube)
     cube = cube.reshape(h, w, m)
     if not return_info:
         return cube
@@ -1011,7 +1011,7 @@ def _solve_fused_all(
     threads, progress, noise=None,
 ):  # fmt: skip
     """Every pixel with events through the fused CPU kernel (:mod:`._fused`), into
-    `cube` and `kkt_all`; a pixel whose float64 factorisation failed (a system
+    `cube` and `kkt_all` (each block of answers as it is solved); a pixel whose float64 factorisation failed (a system
     singular to rounding: not seen in tests) is re-solved by :func:`_solve_robust`."""
     counts, starts, t_rel, sgn = lists
     sel = np.flatnonzero(counts)
@@ -1024,9 +1024,9 @@ def _solve_fused_all(
     order = prob.kernel_order(sel)
     if order is not None:
         sel = sel[order]
-    x, kkt, steps = solve_fused(
+    _, _, steps = solve_fused(
         prob, sel, starts, counts, t_rel, sgn, lead, thr_on, thr_off,
-        threads=threads, progress=progress,
+        threads=threads, progress=progress, out=(cube, kkt_all),
     )  # fmt: skip
     bad = np.flatnonzero(steps < 0)
     if bad.size:  # their events in padded slots, as group_pixels would give them
@@ -1040,11 +1040,9 @@ def _solve_fused_all(
             offsets, thr_on, thr_off, dtype,
         )  # fmt: skip
         noise_j = None if noise is None else jax.device_put(np.asarray(noise, dtype))
-        x[bad], kkt[bad] = _solve_robust_at(
+        cube[pix], kkt_all[pix] = _solve_robust_at(
             rig, table, cfg, spec, px, np.arange(bad.size), sweeps, noise_j
         )
-    cube[sel] = x
-    kkt_all[sel] = kkt
 
 
 #: Events per thread task of the numba screening (slices run on every usable core).

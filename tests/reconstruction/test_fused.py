@@ -180,6 +180,24 @@ def test_photoreceptor_path_answers_in_the_callers_order():
     np.testing.assert_array_equal(x[order], xc)
     np.testing.assert_array_equal(kkt[order], kktc)
     np.testing.assert_array_equal(steps[order], stepsc)
+    # Straight into a cube's rows (`out`), on two threads (blocks of 16 pixels, some
+    # of them not consecutive in the image), from either order: the same answers
+    # in float32, every other row untouched.
+    for pixels in (sel, sel[order]):
+        cube = np.full((h * w, prob.channels), -7.0, np.float32)
+        kkt_all = np.full(h * w, -7.0, np.float32)
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(_fused, "BLOCK_PIXELS", 16)
+            xo, ko, so = _fused.solve_fused(
+                prob, pixels, *args, threads=2, out=(cube, kkt_all)
+            )  # fmt: skip
+        assert xo is None and ko is None
+        at = np.searchsorted(sel, pixels)
+        np.testing.assert_array_equal(so, steps[at])
+        np.testing.assert_array_equal(cube[sel], x.astype(np.float32))
+        np.testing.assert_array_equal(kkt_all[sel], kkt.astype(np.float32))
+        rest = np.setdiff1d(np.arange(h * w), sel)
+        assert np.all(cube[rest] == -7.0) and np.all(kkt_all[rest] == -7.0)
 
 
 def test_lane_solver_flags_a_failed_lane():
@@ -301,9 +319,13 @@ def test_failed_factorisation_falls_back(captures, monkeypatch):
     good = ev.reconstruct(events, rig, backend="fused", **maps)
     real = _fused.solve_fused
 
-    def failing(*a, **k):
-        x, kkt, steps = real(*a, **k)
-        x[::5], steps[::5] = np.nan, -1
+    def failing(prob, sel, *a, **k):
+        x, kkt, steps = real(prob, sel, *a, **k)
+        if k.get("out") is None:
+            x[::5] = np.nan
+        else:  # the answers went into the cube's rows `sel`
+            k["out"][0][sel[::5]] = np.nan
+        steps[::5] = -1
         return x, kkt, steps
 
     monkeypatch.setattr(_pipeline, "solve_fused", failing)
