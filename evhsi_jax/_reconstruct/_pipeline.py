@@ -875,8 +875,8 @@ def reconstruct(
         cube, kkt_all = shard.to_host_copy(cube_d), shard.to_host_copy(kkt_d)
         clipped, hot_done, deblurred = True, True, False
     else:
-        bad = ~np.isfinite(cube)
-        if bad.any():  # never hand out NaN: the no-event answer, flagged (kkt = inf)
+        if not _all_finite(cube):  # never hand out NaN: the no-event answer,
+            bad = ~np.isfinite(cube)  # flagged (kkt = inf)
             cube[bad] = _no_event_answer(rig, m)
             kkt_all[np.any(bad, axis=1)] = np.inf
         if gain is not None:
@@ -1006,13 +1006,22 @@ def _finish_on_device(cube, kkt_all, no_event, gain, clip_max):
 DEVICE_GROUPING = "auto"
 
 
+def _all_finite(a: np.ndarray) -> bool:
+    """Whether every entry of `a` is finite, by its minimum and maximum (NaN and
+    ±inf carry through them) instead of a mask: the mask of a 1280×720 cube took
+    0.17 s in a 6.2 s reconstruction (two 66 MB arrays, each page first touched),
+    the two reductions ~0.02 s."""
+    return a.size == 0 or bool(np.isfinite(a.min()) and np.isfinite(a.max()))
+
+
 def _solve_fused_all(
     rig, table, cfg, spec, sweeps, lists, lead, offsets, thr_on, thr_off, cube, kkt_all,
     threads, progress, noise=None,
 ):  # fmt: skip
     """Every pixel with events through the fused CPU kernel (:mod:`._fused`), into
-    `cube` and `kkt_all` (each block of answers as it is solved); a pixel whose float64 factorisation failed (a system
-    singular to rounding: not seen in tests) is re-solved by :func:`_solve_robust`."""
+    `cube` and `kkt_all` (each block of answers as it is solved); a pixel whose
+    float64 factorisation failed (a system singular to rounding: not seen in tests) is
+    re-solved by :func:`_solve_robust`."""
     counts, starts, t_rel, sgn = lists
     sel = np.flatnonzero(counts)
     if sel.size == 0:

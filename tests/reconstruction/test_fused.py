@@ -336,6 +336,43 @@ def test_failed_factorisation_falls_back(captures, monkeypatch):
     )  # float32 JAX against float64 fused
 
 
+def test_non_finite_answers_never_leave_reconstruct(captures, monkeypatch):
+    """A pixel whose re-solve too comes out non-finite gets the no-event answer and
+    kkt = inf (the cube's finiteness is checked by its minimum and maximum:
+    `_all_finite`, which NaN, +inf and -inf each fail)."""
+    assert _pipeline._all_finite(np.zeros((0, 3), np.float32))
+    for v in (np.nan, np.inf, -np.inf):
+        a = np.ones((4, 3), np.float32)
+        assert _pipeline._all_finite(a)
+        a[2, 1] = v
+        assert not _pipeline._all_finite(a)
+    rig, events, info = captures["colorchecker"]
+    real = _fused.solve_fused
+
+    def failing(prob, sel, *a, **k):
+        x, kkt, steps = real(prob, sel, *a, **k)
+        steps[:3] = -1
+        return x, kkt, steps
+
+    def nan_resolve(rig, table, cfg, spec, px, idx, sweeps, noise):
+        m = _pipeline.channel_table(rig).values.shape[1]
+        return np.full((idx.size, m), np.nan), np.zeros(idx.size)
+
+    monkeypatch.setattr(_pipeline, "solve_fused", failing)
+    monkeypatch.setattr(_pipeline, "_solve_robust_at", nan_resolve)
+    cube, got = ev.reconstruct(
+        events, rig, backend="fused", threshold_on_map=info.threshold_on,
+        threshold_off_map=info.threshold_off, return_info=True,
+    )  # fmt: skip
+    assert np.all(np.isfinite(cube))
+    flat = cube.reshape(-1, cube.shape[-1])
+    first3 = np.flatnonzero(got.events.ravel())[:3]
+    no_event = _pipeline._no_event_answer(rig, cube.shape[-1])
+    np.testing.assert_allclose(flat[first3], np.broadcast_to(no_event, flat[first3].shape))
+    assert np.all(np.isinf(got.kkt.ravel()[first3]))
+    assert np.isfinite(got.kkt.ravel()[np.flatnonzero(got.events.ravel())[3:]]).all()
+
+
 def test_backend_choice_and_refusals(captures):
     rig, events, _ = captures["colorchecker"]
     with pytest.raises(ValueError, match="backend must be one of"):
