@@ -15,8 +15,17 @@ on one thread under `perf record -e cpu-clock`. Printed and written: each kernel
 function's share of the kernel's samples (functions inlined by numba or LLVM count as
 their caller), µs per pixel of the profiled calls, the float32 matmul GFLOP/s.
 
+`--annotate FUNC` (e.g. `solve_pixels`): also where inside that function the samples
+fall, by instruction — its machine code is copied out of the process and
+disassembled (`objdump`), each instruction with its share of the function's samples
+(written to `--annotate-out`, default `/tmp/profile_kernel_<FUNC>.txt`), and the ten
+busiest 64-byte windows printed. A timer sample lands an instruction or two after
+the one that stalled. (This found the AVX-512 scatters of the rows' clearing loops,
+2026-11-27.)
+
     python experiments/profile_kernel.py [--sensor ideal|noise|realistic]
-        [--size 96x144] [--repeats 8] [--out PATH]
+        [--size 96x144] [--repeats 8] [--out PATH] [--annotate FUNC]
+        [--annotate-out PATH]
 
 Needs `perf` (Debian: linux-perf) and permission to sample the process
 (`kernel.perf_event_paranoid` ≤ 2); exits with status 2 and a one-line reason
@@ -105,6 +114,19 @@ def child(args):
         if lib.get_pointer_to_function(n)
     )  # fmt: skip
     sizes = _elf_sizes(lib._get_compiled_object())
+    if args.annotate:  # the function's machine code, for the disassembly
+        import ctypes
+
+        found = [
+            (sizes[n], lib.get_pointer_to_function(n)) for _, n in starts_
+            if _short(n) == args.annotate and n in sizes
+        ]  # fmt: skip
+        if not found:
+            Path(args.child).write_text(json.dumps({"error": args.annotate}))
+            return
+        size, addr = max(found)  # (the function itself, not its Python wrapper)
+        Path(args.child + ".bin").write_bytes(ctypes.string_at(addr, size))
+        Path(args.child + ".at").write_text(f"{addr} {size}")
     with open(f"/tmp/perf-{os.getpid()}.map", "w") as f:
         for (a, n), (b, _) in zip(starts_, starts_[1:] + [(starts_[-1][0] + 4096, "")]):
             f.write(f"{a:x} {min(b - a, sizes.get(n, b - a)):x} "
@@ -118,6 +140,41 @@ def child(args):
     )
 
 
+def annotate(perf: str, data: Path, res: Path, args) -> None:
+    """Samples per instruction of the function `args.annotate` (see the module
+    docstring): written whole, its ten busiest 64-byte windows printed."""
+    from collections import Counter
+
+    objdump = shutil.which("objdump")
+    if objdump is None:
+        print("profile_kernel: `objdump` not found (Debian: apt install binutils)")
+        sys.exit(2)
+    addr, size = (int(v) for v in Path(str(res) + ".at").read_text().split())
+    ips = subprocess.run(
+        [perf, "script", "-i", str(data), "-F", "ip"], capture_output=True, text=True
+    ).stdout.split()  # fmt: skip
+    hits = Counter(v - addr for v in (int(x, 16) for x in ips) if 0 <= v - addr < size)
+    total = max(sum(hits.values()), 1)
+    dis = subprocess.run(
+        [objdump, "-D", "-b", "binary", "-m", "i386:x86-64", str(res) + ".bin"],
+        capture_output=True, text=True,
+    ).stdout  # fmt: skip
+    lines, windows = [], Counter()
+    for line in dis.splitlines():
+        m = re.match(r"\s*([0-9a-f]+):\s+(?:[0-9a-f]{2} )+\s*(.*)", line)
+        if m:
+            off = int(m.group(1), 16)
+            share = hits.get(off, 0) / total
+            windows[off // 64] += share
+            lines.append(f"{100 * share:6.2f} %  {off:6x}  {m.group(2).strip()}")
+    out = Path(args.annotate_out or f"/tmp/profile_kernel_{args.annotate}.txt")
+    out.write_text(f"{args.annotate}: {sum(hits.values())} samples\n" + "\n".join(lines))
+    print(f"{args.annotate}: {sum(hits.values())} samples by instruction in {out}; "
+          "busiest 64-byte windows:")  # fmt: skip
+    for w, share in windows.most_common(10):
+        print(f"  {100 * share:5.1f} %  +{64 * w:x}")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument(
@@ -126,6 +183,8 @@ def main():
     ap.add_argument("--size", default="96x144")
     ap.add_argument("--repeats", type=int, default=8)
     ap.add_argument("--out", default=None)
+    ap.add_argument("--annotate", default=None, metavar="FUNC")
+    ap.add_argument("--annotate-out", default=None)
     ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
@@ -140,6 +199,8 @@ def main():
         cmd = [perf, "record", "-q", "-e", "cpu-clock", "-F", "2000", "-o", str(data),
                "--", sys.executable, __file__, "--sensor", args.sensor, "--size",
                args.size, "--repeats", str(args.repeats), "--child", str(res)]  # fmt: skip
+        if args.annotate:
+            cmd += ["--annotate", args.annotate]
         run = subprocess.run(cmd, env=env, capture_output=True, text=True)
         if run.returncode != 0 or not res.exists():
             tail = (run.stderr.strip().splitlines() or ["no output"])[-1]
@@ -150,7 +211,12 @@ def main():
             capture_output=True, text=True,
         ).stdout  # fmt: skip
         child_res = json.loads(res.read_text())
+        if "error" in child_res:
+            print(f"profile_kernel: no kernel function named {child_res['error']!r}")
+            sys.exit(2)
         Path(f"/tmp/perf-{child_res['pid']}.map").unlink(missing_ok=True)
+        if args.annotate:
+            annotate(perf, data, res, args)
     shares = {}
     for line in rep.splitlines():
         m = re.match(r"\s*([\d.]+)%\s+\[\.\]\s+evhsi_kernel:(\S+)", line)
