@@ -89,10 +89,10 @@ class ProblemConfig:
       is on the pixel). 24, 36, 48 and 72 gave the same accuracy to 0.01° on the
       ColorChecker, tcs and rainbow scenes. The default was 32 until 2026-11-27; 24
       since: on the training scenes (`tcs`, `sharp`), ideal sensor and `realistic`
-      preset, it moved SAM by ≤ 0.002° against 32, and the anti-drift rows (about
-      half of each pixel's rows) are most of what a pixel costs after its events:
-      the fused kernel is 1.13× faster. 20 lost 0.009° on `tcs` (ideal), 16 lost
-      0.03° (README, "Anti-drift points").
+      preset, it moved SAM by ≤ 0.002° against 32, while the anti-drift rows are
+      about half of each pixel's rows: the ideal fused kernel is 1.10× faster. 20
+      lost 0.009° on `tcs` (ideal), 16 lost 0.03° (README, "Anti-drift points";
+      `experiments/anti_drift_points.py --speed`).
     - `int_target`: `"linear"` (paper) or `"peak"` (see module docstring).
     - `peak_height`: excursion at a polarity flip, in thresholds (for `"peak"`).
     - `normalise`: divide rows by the intensity estimate (False: the literal paper).
