@@ -88,6 +88,14 @@ def compact_events(keep, x, y, p, t, out_x, out_y, out_p, out_t, o0):
 #: Pixels per block of :func:`pixel_lists`' partition pass (2^10: a block's events
 #: fit in a core's L2 cache, the ~900 blocks' write positions in L1).
 LIST_BLOCK_SHIFT = 10
+#: Between the passes each event is one int64: its time from the start (signed,
+#: the high bits), its pixel within its block and its polarity byte (the low
+#: `LIST_LOW_BITS`). One write stream per block instead of three (times, polarities,
+#: pixels): the distributing pass ran ~3x faster (25 M events, one thread, 0.20 →
+#: 0.07 s), and the times are placed into the same memory, viewed as float64.
+LIST_LOW_BITS = LIST_BLOCK_SHIFT + 8
+#: The largest |time from the start| (µs) that fits beside them: ~1.1 years.
+LIST_MAX_SPAN_US = (1 << (63 - LIST_LOW_BITS)) - 1
 
 
 @njit
@@ -101,7 +109,9 @@ def pixel_lists(x, y, t_us, p, width, n_pix, t_start_us, centre):
     whole rainbow), so placing them straight into their pixels' lists writes all over
     the output — a cache miss per event (1280x720 sweep, 25 M events: 1.2 s of the
     fill alone). Through the blocks both placing passes write to a few thousand
-    sequential streams or into one cached block."""
+    sequential streams or into one cached block. Returns `(counts, starts, t_out,
+    s_out, far)`: `far` events lay more than `LIST_MAX_SPAN_US` from `t_start_us`
+    (their times do not fit the packing; the arrays are then not to be used)."""
     n = x.size
     counts = np.zeros(n_pix, np.int64)
     for i in range(n):
@@ -118,16 +128,20 @@ def pixel_lists(x, y, t_us, p, width, n_pix, t_start_us, centre):
         edge[b] = starts[b << shift]
     edge[n_blocks] = n
     # Pass 2: events to their blocks, in time order within a block (the helpers are
-    # those of the threaded version, below).
-    t_out = np.empty(n, np.float64)
+    # those of the threaded version, below), packed one int64 each.
+    packed = np.empty(n, np.int64)
     s_out = np.empty(n, np.int8)
-    local = np.empty(n, np.uint16)
-    _slice_distribute(x, y, t_us, p, width, t_start_us, centre, edge[:n_blocks].copy(),
-                      t_out, s_out, local)  # fmt: skip
-    # Pass 3: within each block, each event to its pixel's next slot.
+    far = _slice_distribute(
+        x, y, t_us, p, width, t_start_us, edge[:n_blocks].copy(), packed
+    )  # fmt: skip
+    # Pass 3: within each block, each event to its pixel's next slot; its time into
+    # the same memory, as float64.
     # (np.int64(0), not the literal 0: one compiled _blocks_place for both callers)
-    _blocks_place(np.int64(0), n_blocks, edge, starts.copy(), t_out, s_out, local)
-    return counts, starts, t_out, s_out
+    t_out = packed.view(np.float64)
+    _blocks_place(
+        np.int64(0), n_blocks, edge, starts.copy(), packed, t_out, s_out, centre
+    )  # fmt: skip
+    return counts, starts, t_out, s_out, far
 
 
 # The same lists built on several threads (`pixel_lists_threaded`): the events cut
@@ -150,44 +164,51 @@ def _slice_counts(x, y, width, counts, block_counts):
 
 @njit
 @no_type_check
-def _slice_distribute(x, y, t_us, p, width, t_start_us, centre, fill, t_out, s_out,
-                      local):  # fmt: skip
-    """Pass 2 of `pixel_lists` for one slice, from its own write positions `fill`."""
+def _slice_distribute(x, y, t_us, p, width, t_start_us, fill, packed):
+    """Pass 2 of `pixel_lists` for one slice, from its own write positions `fill`:
+    each event as `(t - t_start) << LIST_LOW_BITS | pixel in block << 8 | p`.
+    Returns how many events lay beyond `LIST_MAX_SPAN_US` of the start."""
     shift = LIST_BLOCK_SHIFT
+    far = 0
     for i in range(x.size):
         q = np.int64(y[i]) * width + np.int64(x[i])
         b = q >> shift
         j = fill[b]
         fill[b] = j + 1
-        t_out[j] = np.float64(np.int64(t_us[i]) - t_start_us) + centre
-        s_out[j] = 2 * np.int8(p[i]) - 1
-        local[j] = q - (b << shift)
+        dt = np.int64(t_us[i]) - t_start_us
+        if dt > LIST_MAX_SPAN_US or dt < -LIST_MAX_SPAN_US:
+            far += 1
+        packed[j] = (dt << LIST_LOW_BITS) | ((q - (b << shift)) << 8) | np.int64(p[i])
+    return far
 
 
 @njit
 @no_type_check
-def _blocks_place(b0, b1, edge, pos, t_out, s_out, local):
+def _blocks_place(b0, b1, edge, pos, packed, t_out, s_out, centre):
     """Pass 3 of `pixel_lists` for the blocks [b0, b1) (their pixels' write
-    positions `pos` are theirs alone)."""
+    positions `pos` are theirs alone): each block's packed events copied out, then
+    each one's time (+ `centre`, float64) and polarity (±1) written at its pixel's
+    next slot. `t_out` may be `packed` itself viewed as float64: a block's slots are
+    the ones its events were packed into."""
     shift = LIST_BLOCK_SHIFT
+    in_block = (1 << shift) - 1
     longest = 0
     for b in range(b0, b1):
         longest = max(longest, edge[b + 1] - edge[b])
-    tmp_t = np.empty(longest, np.float64)
-    tmp_s = np.empty(longest, np.int8)
+    tmp = np.empty(longest, np.int64)
     for b in range(b0, b1):
         lo = edge[b]
         m = edge[b + 1] - lo
         for k in range(m):
-            tmp_t[k] = t_out[lo + k]
-            tmp_s[k] = s_out[lo + k]
+            tmp[k] = packed[lo + k]
         base = b << shift
         for k in range(m):
-            q = base + np.int64(local[lo + k])
+            v = tmp[k]
+            q = base + ((v >> 8) & in_block)
             j = pos[q]
             pos[q] = j + 1
-            t_out[j] = tmp_t[k]
-            s_out[j] = tmp_s[k]
+            t_out[j] = np.float64(v >> LIST_LOW_BITS) + centre
+            s_out[j] = 2 * np.int8(v & 0xFF) - 1
 
 
 def pixel_lists_threaded(x, y, t_us, p, width, n_pix, t_start_us, centre, pool,
@@ -210,16 +231,19 @@ def pixel_lists_threaded(x, y, t_us, p, width, n_pix, t_start_us, centre, pool,
     edge[n_blocks] = n
     # Each slice writes after the earlier slices' events of the same block.
     fills = edge[:n_blocks] + np.cumsum(blocks_s, axis=0) - blocks_s
-    t_out = np.empty(n, np.float64)
+    packed = np.empty(n, np.int64)
     s_out = np.empty(n, np.int8)
-    local = np.empty(n, np.uint16)
-    list(pool.map(lambda i: _slice_distribute(
-        x[sl[i]], y[sl[i]], t_us[sl[i]], p[sl[i]], width, t_start_us, centre,
-        fills[i], t_out, s_out, local), range(workers)))  # fmt: skip
+    far = sum(pool.map(lambda i: _slice_distribute(
+        x[sl[i]], y[sl[i]], t_us[sl[i]], p[sl[i]], width, t_start_us, fills[i],
+        packed), range(workers)))  # fmt: skip
+    if far:  # (the caller takes another path: see pixel_lists)
+        return counts, starts, None, None, far
     # Blocks split so that each thread gets about the same number of events.
     bcut = np.searchsorted(edge, np.linspace(0, n, workers + 1)).clip(0, n_blocks)
     bcut[0], bcut[-1] = 0, n_blocks
     pos = starts.copy()
-    list(pool.map(lambda i: _blocks_place(int(bcut[i]), int(bcut[i + 1]), edge, pos,
-                                          t_out, s_out, local), range(workers)))  # fmt: skip
-    return counts, starts, t_out, s_out
+    t_out = packed.view(np.float64)
+    list(pool.map(lambda i: _blocks_place(
+        np.int64(bcut[i]), np.int64(bcut[i + 1]), edge, pos, packed, t_out, s_out,
+        centre), range(workers)))  # fmt: skip
+    return counts, starts, t_out, s_out, 0

@@ -238,7 +238,9 @@ def pixel_lists(events: EventStream, t_start_us: int):
     `t_us[starts[p] : starts[p] + counts[p]]`, in time order. With numba one pass
     counts and one fills the lists (`_group_jit.pixel_lists`), each pass split over
     the usable cores from `THREADED_LISTS_MIN` events on (the same arrays); the NumPy
-    path (a stable index sort, then gathers) is the reference."""
+    path (a stable index sort, then gathers) is the reference, and takes a recording
+    with times more than `_group_jit.LIST_MAX_SPAN_US` (~1.1 years) from
+    `t_start_us`, which the numba path's packing cannot hold."""
     w, h = events.width, events.height
     if use_numba() and len(events):
         from . import _group_jit
@@ -250,8 +252,11 @@ def pixel_lists(events: EventStream, t_start_us: int):
         workers = min(shard.usable_cores(), 8)
         if workers > 1 and len(events) >= THREADED_LISTS_MIN:
             with concurrent.futures.ThreadPoolExecutor(workers) as pool:
-                return _group_jit.pixel_lists_threaded(*args, pool, workers)
-        return _group_jit.pixel_lists(*args)
+                *lists, far = _group_jit.pixel_lists_threaded(*args, pool, workers)
+        else:
+            *lists, far = _group_jit.pixel_lists(*args)
+        if not far:  # (else times over a year apart: the NumPy path below)
+            return tuple(lists)
     pix = events.y.astype(np.int64) * w + events.x.astype(np.int64)
     counts = np.bincount(pix, minlength=w * h)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])

@@ -552,10 +552,52 @@ def test_pixel_lists_kernel_matches_the_numpy_reference(capture):
             np.int64(3), TIMESTAMP_CENTRE_US)  # fmt: skip
     for workers in (2, 3):
         with concurrent.futures.ThreadPoolExecutor(workers) as pool:
-            par = _group_jit.pixel_lists_threaded(*args, pool, workers)
-        for a, b in zip(par, ref):
+            *par, far = _group_jit.pixel_lists_threaded(*args, pool, workers)
+        assert far == 0
+        for a, b in zip(par, ref, strict=True):
             assert a.dtype == b.dtype
             np.testing.assert_array_equal(a, b)
+
+
+def test_pixel_lists_far_apart_times_take_the_numpy_path(monkeypatch):
+    # The numba lists pack each event's time from the start into 45 bits; times
+    # further apart (here ±2^46 µs, and one negative) are flagged by both numba
+    # routes and listed by the NumPy path instead: the reference arrays.
+    from evhsi_jax._base._numba import numba_available, use_backend
+    from evhsi_jax._reconstruct import _group_jit, _pixels
+
+    if not numba_available():
+        pytest.skip("numba is not importable here")
+    t = np.array([-(1 << 46), 5, 7, 9, 11, 1 << 46, (1 << 46) + 3], np.int64)
+    n = t.size
+    events = ev.io.EventStream(
+        x=np.array([0, 1, 0, 2, 1, 0, 2], np.uint16), y=np.zeros(n, np.uint16),
+        p=np.array([1, 0, 1, 1, 0, 0, 1], np.uint8), t_us=t, width=3, height=1,
+    )  # fmt: skip
+    args = (events.x, events.y, events.t_us, events.p, np.int64(3), np.int64(3),
+            np.int64(0), _pixels.TIMESTAMP_CENTRE_US)  # fmt: skip
+    assert _group_jit.pixel_lists(*args)[4] == 3
+    with use_backend("numpy"):
+        ref = _pixels.pixel_lists(events, 0)
+    for threaded in (False, True):
+        monkeypatch.setattr(_pixels, "THREADED_LISTS_MIN", 1 if threaded else 1 << 30)
+        monkeypatch.setattr(_pixels.shard, "usable_cores", lambda: 2)
+        with use_backend("numba"):
+            got = _pixels.pixel_lists(events, 0)
+        for a, b in zip(got, ref, strict=True):
+            assert a.dtype == b.dtype
+            np.testing.assert_array_equal(a, b)
+    # Within the span, the numba route's own arrays: the same as the reference.
+    near = ev.io.EventStream(
+        x=events.x[1:5], y=events.y[1:5], p=events.p[1:5], t_us=t[1:5], width=3,
+        height=1,
+    )  # fmt: skip
+    with use_backend("numpy"):
+        ref = _pixels.pixel_lists(near, 0)
+    *got, far = _group_jit.pixel_lists(*((near.x, near.y, near.t_us, near.p) + args[4:]))
+    assert far == 0
+    for a, b in zip(got, ref, strict=True):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_device_lists_padding_threaded_is_serial(monkeypatch):
