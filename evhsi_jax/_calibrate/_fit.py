@@ -89,6 +89,18 @@ __all__ = [
 ]
 
 TAU_SCALE_US = 100.0  # τx parameter unit in the solver
+#: Levenberg–Marquardt's (rtol, atol) in the first stage (one threshold pair) and the
+#: second (thresholds profiled out), in the Jacobi-scaled variables (unit diagonal of
+#: the Gauss–Newton matrix, so a parameter's statistical uncertainty is about the
+#: RMS residual, ~2e-3 on a clean chart). Both stopping tests (the step in the
+#: variables, the change of the reduced residuals) are relative to those scales.
+#: Until 2026-11-27 both stages used (1e-7, 1e-9): 38 steps on the 1280-column
+#: benchmark chart, the last ~15 of them changing no parameter by more than 4e-9
+#: relative (most rejected while the trust region shrank to meet the tests); the
+#: first stage is only a start for the second. These tolerances take 24 steps there
+#: (25 instead of 46 on the `realistic` chart) and move every fitted value by
+#: < 1e-8 relative and τx by < 3e-8 µs (README, Performance, "Calibration").
+LM_TOL = ((1e-4, 1e-5), (1e-5, 1e-6))
 CURV_SCALE_NM = 1.0  # sweep-curvature parameter unit in the solver
 SMOOTH_WEIGHT = 0.02  # residual weight of one µs of τx second difference
 
@@ -694,15 +706,15 @@ def _jacobi_scale(p0: dict, keep, fit: _FitData) -> dict:
     }
 
 
-def _lm_stage(u, scale, profile, keep, fit, max_steps, verbose):
+def _lm_stage(u, scale, profile, keep, fit, max_steps, verbose, tol):
     """One Levenberg–Marquardt stage of :func:`_fit_chart_float64` from the scaled
     start `u`: (its end point, its number of steps, whether it converged). A function
     of arrays and static values only, so that `call_exported` can keep its traced
     program on disk: tracing optimistix's solver is most of a small chart's
     calibration time in a new process."""
     solver = optx.LevenbergMarquardt(
-        rtol=1e-7,
-        atol=1e-9,
+        rtol=tol[0],
+        atol=tol[1],
         # An inexact Gauss–Newton step is enough inside Levenberg–Marquardt.
         linear_solver=_normal_cg(rtol=1e-4, atol=1e-9),
         verbose=verbose,
@@ -825,7 +837,8 @@ def _fit_chart_float64(
     converged = True
     outlier_pixels = 0
     for profile in (False, True) if per_pixel else (False,):
-        stage = (u, scale, profile, keep, fit, max_steps, bool(verbose))
+        stage = (u, scale, profile, keep, fit, max_steps, bool(verbose),
+                 LM_TOL[int(profile)])  # fmt: skip
         # (verbose prints from inside the solve: a host callback, which an exported
         # program cannot hold)
         u, n_steps, ok = (
