@@ -258,3 +258,34 @@ def test_response_degree_zero_keeps_the_camera_response():
         np.asarray(_fit._apply(params, rig, basis).camera_response),
         np.asarray(rig.camera_response),
     )
+
+
+def test_stopping_tests_end_where_tight_ones_do(capture, fitted, monkeypatch):
+    """The Levenberg–Marquardt stages stop at tolerances the data resolve
+    (`_fit.LM_TOL`), not at the tight ones used until 2026-11-27: they must not stop
+    early. The fit with (1e-7, 1e-9) in both stages ends at the same rig (float64
+    parameters within 1e-6 relative, τx within 1e-4 µs), in more steps."""
+    from evhsi_jax._calibrate import _fit
+
+    _, chart, events, _ = capture
+    monkeypatch.setattr(_fit, "LM_TOL", ((1e-7, 1e-9), (1e-7, 1e-9)))
+    with jax.enable_x64(True):
+        tight = _fit._fit_chart_float64(
+            events, chart, ev.Rig().astype(jnp.float64), rows_per_label=None
+        )
+    monkeypatch.undo()
+    with jax.enable_x64(True):
+        loose = _fit._fit_chart_float64(
+            events, chart, ev.Rig().astype(jnp.float64), rows_per_label=None
+        )
+    assert loose.steps == fitted.steps  # the default path (float32 rig)
+    assert loose.steps < tight.steps
+    for k in ("threshold_on", "threshold_off", "beta_nm_per_rad", "baseline_rel"):
+        a, b = float(getattr(loose.rig, k)), float(getattr(tight.rig, k))
+        assert a == pytest.approx(b, rel=1e-6), k
+    np.testing.assert_allclose(
+        loose.rig.column_offsets_us, tight.rig.column_offsets_us, rtol=0, atol=1e-4
+    )
+    np.testing.assert_allclose(
+        loose.threshold_on_map, tight.threshold_on_map, rtol=1e-6
+    )
