@@ -124,7 +124,12 @@ def _response_basis(rig: Rig, degree: int) -> np.ndarray:
     return np.stack(rows) if rows else np.zeros((0, u.shape[0]))  # 0: D kept
 
 
-BLOCK_EVENTS = 1 << 13  # padded events per block of chart pixels in the fit's passes
+#: Padded events per block of chart pixels in the fit's passes. 2^12 since
+#: 2026-11-27: the warm in-process calibration of the 1280-column benchmark chart took
+#: 25.0 / 23.7 s against 27.8 / 28.2 s with 2^13 and 41.7 s with 2^15 (two runs each,
+#: same steps and fitted rig; 2^10 took 26.8 s and two more steps): each block's
+#: G + 1 tangents of its intermediates stay in the cache.
+BLOCK_EVENTS = 1 << 12
 
 
 class _FitData(eqx.Module):
