@@ -8,6 +8,7 @@ from . import _shard as shard  # noqa: F401  (the mesh plumbing as a namespace)
 from ._cache import call_exported as call_exported
 from ._cache import enable_compilation_cache as enable_compilation_cache
 from ._limits import check_fits as check_fits
+from ._limits import release_free_memory as release_free_memory
 from ._metrics import evaluate as evaluate
 from ._metrics import per_label_table as per_label_table
 from ._metrics import psnr_db as psnr_db

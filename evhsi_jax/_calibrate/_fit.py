@@ -56,7 +56,7 @@ import lineax as lx
 import numpy as np
 import optimistix as optx
 
-from .._base import call_exported
+from .._base import call_exported, release_free_memory
 from .._model import (
     BandTable,
     Calibration,
@@ -880,6 +880,9 @@ def _fit_chart_float64(
         fitted = fitted.with_leaves(baseline_rel=rig.baseline_rel)
     on_map = off_map = psf = None
     if per_pixel:
+        # The compiler's freed memory back to the system before the maps' own peak
+        # (a first run, which compiles, held ~0.5 GB of it here).
+        release_free_memory()
         on_map, off_map, psf = threshold_maps_from_chart(
             events, chart, fitted, t_start_us=t_start_us, return_psf=True
         )
