@@ -89,17 +89,20 @@ __all__ = [
 ]
 
 TAU_SCALE_US = 100.0  # τx parameter unit in the solver
-#: Levenberg–Marquardt's (rtol, atol) in the first stage (one threshold pair) and the
-#: second (thresholds profiled out), in the Jacobi-scaled variables (unit diagonal of
-#: the Gauss–Newton matrix, so a parameter's statistical uncertainty is about the
-#: RMS residual, ~2e-3 on a clean chart). Both stopping tests (the step in the
-#: variables, the change of the reduced residuals) are relative to those scales.
+#: Levenberg–Marquardt's (rtol, atol) in a stage that another follows (the first, one
+#: threshold pair, when per-pixel thresholds are profiled out after it) and in the
+#: last stage (the only one with `per_pixel=False`), in the Jacobi-scaled variables
+#: (unit diagonal of the Gauss–Newton matrix, so a parameter's statistical
+#: uncertainty is about the RMS residual, ~2e-3 on a clean chart). Both stopping
+#: tests (the step in the variables, the change of the reduced residuals) are
+#: relative to those scales.
 #: Until 2026-11-27 both stages used (1e-7, 1e-9): 38 steps on the 1280-column
 #: benchmark chart, the last ~15 of them changing no parameter by more than 4e-9
 #: relative (most rejected while the trust region shrank to meet the tests); the
 #: first stage is only a start for the second. These tolerances take 24 steps there
-#: (25 instead of 46 on the `realistic` chart) and move every fitted value by
-#: < 1e-8 relative and τx by < 3e-8 µs (README, Performance, "Calibration").
+#: (25–28 instead of 46 on the `realistic` chart, with the blocks below of 8,192 and
+#: 4,096 events) and move every fitted value by < 1e-8 relative and τx by < 3e-8 µs
+#: (README, Performance, "Calibration").
 LM_TOL = ((1e-4, 1e-5), (1e-5, 1e-6))
 CURV_SCALE_NM = 1.0  # sweep-curvature parameter unit in the solver
 SMOOTH_WEIGHT = 0.02  # residual weight of one µs of τx second difference
@@ -841,9 +844,11 @@ def _fit_chart_float64(
     u, steps = jax.tree.map(lambda a, b: a * b, p0, scale), 0
     converged = True
     outlier_pixels = 0
-    for profile in (False, True) if per_pixel else (False,):
+    stages = (False, True) if per_pixel else (False,)
+    for profile in stages:
+        last = profile == stages[-1]  # a start for the next stage, or the answer
         stage = (u, scale, profile, keep, fit, max_steps, bool(verbose),
-                 LM_TOL[int(profile)])  # fmt: skip
+                 LM_TOL[int(last)])  # fmt: skip
         # (verbose prints from inside the solve: a host callback, which an exported
         # program cannot hold)
         u, n_steps, ok = (

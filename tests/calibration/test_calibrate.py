@@ -264,7 +264,8 @@ def test_stopping_tests_end_where_tight_ones_do(capture, fitted, monkeypatch):
     """The Levenberg–Marquardt stages stop at tolerances the data resolve
     (`_fit.LM_TOL`), not at the tight ones used until 2026-11-27: they must not stop
     early. The fit with (1e-7, 1e-9) in both stages ends at the same rig (float64
-    parameters within 1e-6 relative, τx within 1e-4 µs), in more steps."""
+    parameters within 1e-6 relative, τx within 1e-4 µs), in more steps; so does the
+    global-only fit (`per_pixel=False`, one stage with the last stage's tolerances)."""
     from evhsi_jax._calibrate import _fit
 
     _, chart, events, _ = capture
@@ -289,3 +290,16 @@ def test_stopping_tests_end_where_tight_ones_do(capture, fitted, monkeypatch):
     np.testing.assert_allclose(
         loose.threshold_on_map, tight.threshold_on_map, rtol=1e-6
     )
+    # Without per-pixel thresholds the one stage is the last: the final tolerances.
+    fits = []
+    for tol in (((1e-7, 1e-9), (1e-7, 1e-9)), _fit.LM_TOL):
+        monkeypatch.setattr(_fit, "LM_TOL", tol)
+        with jax.enable_x64(True):
+            fits.append(_fit._fit_chart_float64(
+                events, chart, ev.Rig().astype(jnp.float64), rows_per_label=None,
+                per_pixel=False,
+            ))  # fmt: skip
+    tight, loose = fits
+    for k in ("threshold_on", "threshold_off", "beta_nm_per_rad", "baseline_rel"):
+        a, b = float(getattr(loose.rig, k)), float(getattr(tight.rig, k))
+        assert a == pytest.approx(b, rel=1e-6), k
