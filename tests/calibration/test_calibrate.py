@@ -269,21 +269,25 @@ def test_stopping_tests_end_where_tight_ones_do(capture, fitted, monkeypatch):
     from evhsi_jax._calibrate import _fit
 
     _, chart, events, _ = capture
-    monkeypatch.setattr(_fit, "LM_TOL", ((1e-7, 1e-9), (1e-7, 1e-9)))
-    with jax.enable_x64(True):
-        tight = _fit._fit_chart_float64(
-            events, chart, ev.Rig().astype(jnp.float64), rows_per_label=None
-        )
-    monkeypatch.undo()
-    with jax.enable_x64(True):
-        loose = _fit._fit_chart_float64(
-            events, chart, ev.Rig().astype(jnp.float64), rows_per_label=None
-        )
+    tight_tol, default_tol = ((1e-7, 1e-9), (1e-7, 1e-9)), _fit.LM_TOL
+
+    def fit(tol, per_pixel=True):
+        monkeypatch.setattr(_fit, "LM_TOL", tol)
+        with jax.enable_x64(True):
+            return _fit._fit_chart_float64(
+                events, chart, ev.Rig().astype(jnp.float64), rows_per_label=None,
+                per_pixel=per_pixel,
+            )  # fmt: skip
+
+    def assert_same_globals(loose, tight):
+        for k in ("threshold_on", "threshold_off", "beta_nm_per_rad", "baseline_rel"):
+            a, b = float(getattr(loose.rig, k)), float(getattr(tight.rig, k))
+            assert a == pytest.approx(b, rel=1e-6), k
+
+    tight, loose = fit(tight_tol), fit(default_tol)
     assert loose.steps == fitted.steps  # the default path (float32 rig)
     assert loose.steps < tight.steps
-    for k in ("threshold_on", "threshold_off", "beta_nm_per_rad", "baseline_rel"):
-        a, b = float(getattr(loose.rig, k)), float(getattr(tight.rig, k))
-        assert a == pytest.approx(b, rel=1e-6), k
+    assert_same_globals(loose, tight)
     np.testing.assert_allclose(
         loose.rig.column_offsets_us, tight.rig.column_offsets_us, rtol=0, atol=1e-4
     )
@@ -291,15 +295,4 @@ def test_stopping_tests_end_where_tight_ones_do(capture, fitted, monkeypatch):
         loose.threshold_on_map, tight.threshold_on_map, rtol=1e-6
     )
     # Without per-pixel thresholds the one stage is the last: the final tolerances.
-    fits = []
-    for tol in (((1e-7, 1e-9), (1e-7, 1e-9)), _fit.LM_TOL):
-        monkeypatch.setattr(_fit, "LM_TOL", tol)
-        with jax.enable_x64(True):
-            fits.append(_fit._fit_chart_float64(
-                events, chart, ev.Rig().astype(jnp.float64), rows_per_label=None,
-                per_pixel=False,
-            ))  # fmt: skip
-    tight, loose = fits
-    for k in ("threshold_on", "threshold_off", "beta_nm_per_rad", "baseline_rel"):
-        a, b = float(getattr(loose.rig, k)), float(getattr(tight.rig, k))
-        assert a == pytest.approx(b, rel=1e-6), k
+    assert_same_globals(fit(default_tol, False), fit(tight_tol, False))
