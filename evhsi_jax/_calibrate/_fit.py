@@ -133,6 +133,7 @@ def _response_basis(rig: Rig, degree: int) -> np.ndarray:
 #: same steps and fitted rig; 2^10 took 26.8 s and two more steps): each block's
 #: G + 1 tangents of its intermediates stay in the cache.
 BLOCK_EVENTS = 1 << 12
+MERGE_PADDING = 0.06
 
 
 class _FitData(eqx.Module):
@@ -164,6 +165,26 @@ def _by_event_count(data: ChartData) -> ChartData:
     return data.subset(np.argsort(-data.mask.sum(axis=1), kind="stable"))
 
 
+def _merge_small_buckets(need: np.ndarray) -> np.ndarray:
+    """Each pixel's padded length (`need`, non-increasing), with the shortest lengths'
+    pixels moved up to the next longer one while that adds at most
+    `MERGE_PADDING` of the padded total: each length is one more traced pass in
+    every compiled program of the fit."""
+    need = need.copy()
+    total = float(need.sum())
+    added = 0.0
+    while True:
+        ks = np.unique(need)  # ascending
+        if ks.size < 2:
+            return need
+        k, k_up = ks[0], ks[1]
+        extra = float(np.sum(need == k)) * (k_up - k)
+        if added + extra > MERGE_PADDING * total:
+            return need
+        added += extra
+        need[need == k] = k_up
+
+
 def _bucketed(data: ChartData, dtype):
     """Sorted event lists → buckets of blocks (padding: no events) and their rows.
 
@@ -171,6 +192,7 @@ def _bucketed(data: ChartData, dtype):
     (at least 8), in blocks of about `BLOCK_EVENTS` padded events."""
     counts = data.mask.sum(axis=1)
     need = np.array([max(8, 1 << int(max(c - 1, 0)).bit_length()) for c in counts])
+    need = _merge_small_buckets(need)
     buckets, rows = [], []
     start = 0
     while start < counts.size:
@@ -429,11 +451,6 @@ def _fit_residuals_scaled(u, args):
         return r, jnp.concatenate([lower.T @ tf, jnp.zeros((1,), tf.dtype)])
 
     return reduced(u_flat, dynamic)
-
-
-@eqx.filter_jit
-def _fit_sum_sq(params, profile, keep, fit):
-    return jnp.sum(_fit_residuals(params, profile, keep, fit) ** 2)
 
 
 def _apply(params, base: Rig, basis=None) -> Rig:
@@ -700,18 +717,20 @@ def _screened_chart_data(
     return data, events, hot
 
 
-def _jacobi_scale(p0: dict, keep, fit: _FitData) -> dict:
+def _jacobi_scale(p0: dict, keep, fit: _FitData):
     """Each parameter's Jacobian column norm at `p0` (floored), from the diagonal of
     the event residuals' normal equations: the change of variables of
-    :func:`_fit_chart_float64`."""
+    :func:`_fit_chart_float64`; and the residuals' sum of squares there (one
+    threshold pair)."""
     ones = jax.tree.map(jnp.ones_like, p0)
-    hgg, _, htt, _, _, _ = _data_system(p0, (ones, (False, keep, fit)))
+    hgg, _, htt, _, _, ss = _data_system(p0, (ones, (False, keep, fit)))
     _, unravel = jax.flatten_util.ravel_pytree(p0)
     norms = unravel(jnp.sqrt(jnp.maximum(jnp.concatenate([jnp.diag(hgg), htt]), 0.0)))
-    return {
+    scale = {
         k: jnp.maximum(v, 1e-6 * jnp.max(v) + 1e-30) if v.size else v
         for k, v in norms.items()
     }
+    return scale, ss
 
 
 def _lm_stage(u, scale, profile, keep, fit, max_steps, verbose, tol):
@@ -719,7 +738,9 @@ def _lm_stage(u, scale, profile, keep, fit, max_steps, verbose, tol):
     start `u`: (its end point, its number of steps, whether it converged). A function
     of arrays and static values only, so that `call_exported` can keep its traced
     program on disk: tracing optimistix's solver is most of a small chart's
-    calibration time in a new process."""
+    calibration time in a new process. `profile` (a boolean array) and `tol`
+    (`(rtol, atol)`, an array) are inputs, so both stages run one program: a first
+    run compiles it once (with two programs, ~5 s more on 2 cores)."""
     solver = optx.LevenbergMarquardt(
         rtol=tol[0],
         atol=tol[1],
@@ -820,24 +841,20 @@ def _fit_chart_float64(
     ones = jnp.ones_like(keep)
 
     def residuals(params, profile, keep):
-        args = (params, profile, keep, fit)
-        return call_exported("calibrate_residuals", _fit_residuals, args)
+        # (`profile` as an array: one program for both kinds of residual)
+        args = (params, jnp.asarray(profile), keep, fit)
+        return np.asarray(call_exported("calibrate_residuals", _fit_residuals, args))
+
+    def rms_of(res, keep):
+        n = int((data.mask & (np.asarray(keep) > 0)[:, None]).sum())
+        return float(np.sqrt(np.sum(np.square(res, dtype=np.float64)) / max(n, 1)))
 
     # Jacobi scaling by change of variables (u = θ·s, s = column norms of the Jacobian at
     # the start): the Gauss–Newton matrix then has a unit diagonal and is "identity plus
     # the rank-4 coupling of the global parameters", so the matrix-free CG inside each
     # Levenberg–Marquardt step converges in a few iterations.
-    scale = call_exported("calibrate_scale", _jacobi_scale, (p0, keep, fit))
-
-    def rms_of(params, profile):
-        kept = np.asarray(keep) > 0
-        n = int((data.mask & kept[:, None]).sum())
-        ss = call_exported(
-            "calibrate_sum_sq", _fit_sum_sq, (params, profile, keep, fit)
-        )
-        return float(jnp.sqrt(ss / max(n, 1)))
-
-    r0 = rms_of(p0, False)
+    scale, ss0 = call_exported("calibrate_scale", _jacobi_scale, (p0, keep, fit))
+    r0 = float(jnp.sqrt(ss0 / max(int(data.mask.sum()), 1)))
     # Stage 1: one threshold pair for all pixels. Stage 2 (per_pixel): the same fit with
     # every pixel's thresholds profiled out, so per-pixel mismatch cannot bias β, c, τx;
     # the thresholds then follow in closed form and the rig's global pair is their mean.
@@ -847,8 +864,8 @@ def _fit_chart_float64(
     stages = (False, True) if per_pixel else (False,)
     for profile in stages:
         last = profile == stages[-1]  # a start for the next stage, or the answer
-        stage = (u, scale, profile, keep, fit, max_steps, bool(verbose),
-                 LM_TOL[int(last)])  # fmt: skip
+        stage = (u, scale, jnp.asarray(profile), keep, fit, max_steps, bool(verbose),
+                 jnp.asarray(LM_TOL[int(last)], dtype))  # fmt: skip
         # (verbose prints from inside the solve: a host callback, which an exported
         # program cannot hold)
         u, n_steps, ok = (
@@ -865,19 +882,19 @@ def _fit_chart_float64(
             print(
                 f"calibrate (profiled={profile}): "
                 f"{'converged' if converged else 'not converged'}, rms "
-                f"{rms_of(params, profile):.5f}"
+                f"{rms_of(residuals(params, profile, keep), keep):.5f}"
             )
         if not profile:
             # Robustness: a pixel with an event the model cannot explain (a noise
             # event inside the lit interval, a missed crossing) is dropped whole —
             # one bad event also corrupts its neighbour's reference.
-            r = np.asarray(residuals(params, per_pixel, ones))
+            r = residuals(params, per_pixel, ones)
             bad_px = _outlier_pixels(r, data.mask)
             outlier_pixels = int(bad_px.sum())
             if 0 < outlier_pixels < 0.5 * bad_px.size:
                 keep = jnp.asarray(~bad_px, dtype)
-    rms = rms_of(params, per_pixel)
-    res_final = np.asarray(residuals(params, per_pixel, keep))
+    res_final = residuals(params, per_pixel, keep)
+    rms = rms_of(res_final, keep)
     kept = np.asarray(keep) > 0
     data = dataclasses.replace(data, mask=data.mask & kept[:, None])
     fitted = _apply(params, rig, basis)

@@ -109,6 +109,58 @@ def test_residual_gradients_match_finite_differences(capture):
         assert all(bool(jnp.all(jnp.isfinite(g))) for g in jax.tree.leaves(grad))
 
 
+def test_profiled_residuals_derivative_is_the_automatic_one(capture):
+    """The per-pixel profiled residuals' derivative is written out (a custom JVP, for
+    speed): it must equal the automatic derivative of the plain formula, also on rows
+    without events of one polarity or with every log step 0; and a traced
+    `per_pixel` (one program for both fit stages) gives the static answers."""
+    from evhsi_jax._calibrate import _chart
+
+    _, chart, events, _ = capture
+
+    def plain(d, pos, neg):  # the formula before the JVP was written out
+        def inv_c(sel, sign):
+            num = jnp.sum(jnp.where(sel, sign * d, 0.0), 1, keepdims=True)
+            den = jnp.sum(jnp.where(sel, d * d, 0.0), 1, keepdims=True)
+            ok = den > 0
+            return jnp.where(ok, num / jnp.where(ok, den, 1.0), 0.0)
+
+        return jnp.where(pos, inv_c(pos, 1.0), jnp.where(neg, inv_c(neg, -1.0), 0.0))
+
+    with jax.enable_x64(True):
+        key1, key2, key3 = jr.split(jr.key(5), 3)
+        d = jr.normal(key1, (6, 9))
+        pol = jnp.where(jr.bernoulli(key2, 0.5, (6, 9)), 1.0, -1.0)
+        mask = jnp.ones((6, 9), bool).at[:, 7:].set(False)
+        pol = pol.at[1].set(1.0).at[2].set(-1.0)  # only ON / only OFF events
+        d = d.at[3].set(0.0)  # every step 0: no threshold, no derivative
+        pos, neg = mask & (pol > 0), mask & (pol < 0)
+        for key in jr.split(key3, 3):
+            t = jr.normal(key, d.shape)
+            want = jax.jvp(lambda x: plain(x, pos, neg), (d,), (t,))
+            got = jax.jvp(
+                lambda x: _chart._own_inverse_thresholds(
+                    x, pos.astype(x.dtype), neg.astype(x.dtype)
+                ),
+                (d,), (t,),
+            )  # fmt: skip
+            for a, b in zip(got, want, strict=True):
+                np.testing.assert_allclose(
+                    np.where(mask, a, 0.0), np.where(mask, b, 0.0), rtol=1e-12,
+                    atol=1e-14,
+                )  # fmt: skip
+
+        rig = _true_rig().astype(jnp.float64)
+        data = ev.calibration.chart_data(events, chart, rig, rows_per_label=1)
+        for flag in (False, True):
+            fixed = ev.calibration.chart_residuals(rig, data, per_pixel=flag)
+            traced = jax.jit(
+                lambda f: ev.calibration.chart_residuals(rig, data, per_pixel=f)
+            )(jnp.asarray(flag))
+            # (jit against eager arithmetic: d·u − σ cancels to ~1e-13)
+            np.testing.assert_allclose(traced, fixed, rtol=0, atol=1e-11)
+
+
 def test_gradients_finite_at_hard_points(capture):
     _, chart, events, _ = capture
     with jax.enable_x64(True):
@@ -232,7 +284,7 @@ def test_a_second_process_fits_from_stored_programs(capture, fitted, monkeypatch
         raise AssertionError("traced although its program is stored")
 
     for mod, name in [(_fit, "_lm_stage"), (_fit, "_jacobi_scale"),
-                      (_fit, "_fit_sum_sq"), (_fit, "_fit_residuals"),
+                      (_fit, "_fit_residuals"),
                       (_chart, "_log_steps_jit")]:  # fmt: skip
         monkeypatch.setattr(mod, name, untraced)
     again = ev.calibrate(events, chart, ev.Rig(), rows_per_label=None)
@@ -273,9 +325,10 @@ def test_stopping_tests_end_where_tight_ones_do(capture, fitted, monkeypatch):
 
     def fit(tol, per_pixel=True):
         monkeypatch.setattr(_fit, "LM_TOL", tol)
+        init = ev.Rig()  # float32, as `fitted`'s (`ev.calibrate` converts it)
         with jax.enable_x64(True):
             return _fit._fit_chart_float64(
-                events, chart, ev.Rig().astype(jnp.float64), rows_per_label=None,
+                events, chart, init.astype(jnp.float64), rows_per_label=None,
                 per_pixel=per_pixel,
             )  # fmt: skip
 
