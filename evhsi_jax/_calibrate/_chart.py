@@ -346,18 +346,33 @@ def _device(d: ChartData, dtype):
 
 
 _log_steps_jit = eqx.filter_jit(chart_log_steps)
+#: :func:`_log_steps` pads the chart's distinct spectra to at least this many (and to
+#: a power of two): a blurred chart's band of rows has ~4–32 distinct levels, and
+#: with the photoreceptor each count was a compilation of ~0.8 s on 2 cores.
+MIN_SPECTRA = 32
 
 
 def _log_steps(rig: Rig, data: ChartData, block_events: int = 1 << 20):
     """Model log steps of every chart event in blocks of pixels, `(n, k)` (host).
 
     Blocks of about `block_events` padded events, each padded to the same number of
-    pixels (masked), so one compilation serves all.
+    pixels (masked), so one compilation serves all; a smaller set of pixels is padded
+    to a power of two of them, and the spectra to `MIN_SPECTRA` or a power of two,
+    so the compiled shapes stay few across calls (the fit's and the maps' passes
+    share them).
     """
+    n_spec = data.spectra.shape[0]
+    pad_spec = max(MIN_SPECTRA, 1 << max(n_spec - 1, 1).bit_length()) - n_spec
+    data = dataclasses.replace(
+        data, spectra=np.pad(data.spectra, ((0, pad_spec), (0, 0)))
+    )
     traces = spectral_traces(rig, data.spectra)
     dtype = rig.fwhm_nm.dtype
     n = data.t_us.shape[0]
-    block = min(max(1, block_events // max(data.t_us.shape[1], 1)), n)
+    block = min(
+        max(1, block_events // max(data.t_us.shape[1], 1)),
+        1 << max(n - 1, 0).bit_length(),
+    )
     out = []
     for c0 in range(0, n, block):
         part = data.subset(slice(c0, c0 + block))
@@ -500,11 +515,6 @@ def threshold_maps_from_chart(
 
     def fitted(d, seen):
         d = _seen_through(d, seen, rig)
-        # One padded spectra count (a power of two) for every blur: one compilation.
-        n_spec = 1 << max(d.spectra.shape[0] - 1, 1).bit_length()
-        d = dataclasses.replace(
-            d, spectra=np.pad(d.spectra, ((0, n_spec - d.spectra.shape[0]), (0, 0)))
-        )
         steps = _log_steps(rig, d)
         return d, steps, *_closed_form_thresholds(steps, d)
 

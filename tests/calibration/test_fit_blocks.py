@@ -146,3 +146,38 @@ def test_threshold_maps_use_every_event_of_a_long_chart(noisy_chart, monkeypatch
     # ~8x the events: the noise part of the error averages down (the rest is the
     # censoring of crossings near the sweep's peak, the same for both).
     assert all_events < 0.8 * first_sweep
+
+
+def test_log_steps_share_one_program_across_spectra_and_pixel_counts(
+    noisy_chart, monkeypatch
+):
+    """`_log_steps` pads the chart's spectra (to `MIN_SPECTRA` or a power of two) and a
+    small set of pixels (to a power of two), so lists with 6 or 11 spectra and 40 or
+    60 pixels run one program (a first calibration compiled ~11 of these, ~0.8 s each
+    with a photoreceptor); the padding changes no step."""
+    from evhsi_jax._calibrate import _chart as C
+
+    rig, chart, events, _ = noisy_chart
+    rig = C._with_column_offsets(rig, events.width)
+    data = chart_data(events, chart, rig)
+    shapes = set()
+    real = C.call_exported
+
+    def spy(name, fn, args, **kw):
+        if name == "chart_log_steps":
+            shapes.add(tuple(np.shape(a) for a in jax.tree.leaves(args)))
+        return real(name, fn, args, **kw)
+
+    monkeypatch.setattr(C, "call_exported", spy)
+    with jax.enable_x64(True):
+        rig = rig.astype(jnp.float64)
+        for n_px in (40, 60):
+            for extra in (0, 5):  # unused spectra appended: 6 or 11 in all
+                sub = C.dataclasses.replace(
+                    data.subset(slice(0, n_px)),
+                    spectra=np.concatenate([data.spectra, data.spectra[:extra]]),
+                )
+                steps = C._log_steps(rig, sub)
+                direct = np.asarray(C.chart_log_steps(rig, sub))
+                np.testing.assert_allclose(steps, direct, rtol=1e-10, atol=1e-12)
+    assert len(shapes) == 1, shapes
