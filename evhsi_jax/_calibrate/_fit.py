@@ -70,7 +70,6 @@ from .._reconstruct import lit_interval_us, noise_model, screen_events
 from ._chart import (
     ChartData,
     _closed_form_thresholds,
-    _device,
     _log_steps,
     _with_column_offsets,
     chart_data,
@@ -199,18 +198,22 @@ def _bucketed(data: ChartData, dtype):
         k = int(need[start])
         stop = start + int(np.sum(need[start:] == k))
         part = data.subset(slice(start, stop))
-        dev = _device(part, dtype)
-        dev = tuple(a[:, :k] if a.ndim == 2 else a for a in dev)
+        # Cut on the host (as `_device` types them), one transfer per array: with
+        # JAX operations each bucket's pads and reshapes were ~40 small compilations
+        # (~1 s) in a new process.
+        host = (np.asarray(part.t_us, dtype), np.asarray(part.polarity, np.int32),
+                part.mask, part.column, part.spectrum)  # fmt: skip
+        host = tuple(a[:, :k] if a.ndim == 2 else a for a in host)
         n = stop - start
         block = int(max(1, min(n, BLOCK_EVENTS // k)))
         n_blocks = -(-n // block)
         pad = n_blocks * block - n
 
         def cut(a, pad=pad, n_blocks=n_blocks, block=block):
-            a = jnp.pad(a, ((0, pad),) + ((0, 0),) * (a.ndim - 1))
-            return a.reshape((n_blocks, block) + a.shape[1:])
+            a = np.pad(a, ((0, pad),) + ((0, 0),) * (a.ndim - 1))
+            return jnp.asarray(a.reshape((n_blocks, block) + a.shape[1:]))
 
-        buckets.append(tuple(cut(a) for a in dev))
+        buckets.append(tuple(cut(a) for a in host))
         rows.append((start, stop))
         start = stop
     return tuple(buckets), tuple(rows)
