@@ -353,7 +353,20 @@ MIN_SPECTRA = 32
 
 
 def _log_steps(rig: Rig, data: ChartData, block_events: int = 1 << 20):
-    """Model log steps of every chart event in blocks of pixels, `(n, k)` (host).
+    """Model log steps of every chart event in blocks of pixels, `(n, k)` (host):
+    :func:`_log_steps_begin` then :func:`_log_steps_end`."""
+    return _log_steps_end(_log_steps_begin(rig, data, block_events))
+
+
+def _log_steps_end(pending) -> np.ndarray:
+    """The host array of a :func:`_log_steps_begin` (waits for its blocks)."""
+    return np.concatenate([np.asarray(a, np.float64)[:rows] for a, rows in pending])
+
+
+def _log_steps_begin(rig: Rig, data: ChartData, block_events: int = 1 << 20):
+    """Start the model log steps of every chart event in blocks of pixels: the
+    blocks' device results with their valid rows, for :func:`_log_steps_end` (JAX
+    computes them while the caller's Python goes on).
 
     Blocks of about `block_events` padded events, each padded to the same number of
     pixels (masked), so one compilation serves all; a smaller set of pixels is padded
@@ -389,11 +402,8 @@ def _log_steps(rig: Rig, data: ChartData, block_events: int = 1 << 20):
                 },
             )
         args = (rig, _device(part, dtype), traces)
-        steps = np.asarray(
-            call_exported("chart_log_steps", _log_steps_jit, args), np.float64
-        )
-        out.append(steps[: block - pad])
-    return np.concatenate(out)
+        out.append((call_exported("chart_log_steps", _log_steps_jit, args), block - pad))
+    return out
 
 
 PSF_GRID_PX = (0.0, 0.25, 0.4, 0.5, 0.6, 0.75, 1.0, 1.5)  # blur σ searched, pixels
@@ -519,16 +529,23 @@ def threshold_maps_from_chart(
         return d, steps, *_closed_form_thresholds(steps, d)
 
     # Pass 1: the blur, by the total squared residual over all pixels; the pixels are
-    # taken a band of sensor rows at a time, so memory is bounded by the band.
+    # taken a band of sensor rows at a time, so memory is bounded by the band. The
+    # next blur's log steps are computed while the host reduces this one's.
     ssr = np.zeros(len(psf_sigmas_px))
     if len(psf_sigmas_px) > 1:
         for y0, y1 in bands:
             d = band_data(y0, y1)
             if d is None:
                 continue
-            for i, seen in enumerate(seen_charts):
-                _, steps, c_on, c_off = fitted(d, seen)
-                rms_px = _rms_own_thresholds(steps, d, c_on, c_off)
+            views = [_seen_through(d, seen, rig) for seen in seen_charts]
+            nxt = _log_steps_begin(rig, views[0])
+            for i, view in enumerate(views):
+                pending = nxt
+                if i + 1 < len(views):
+                    nxt = _log_steps_begin(rig, views[i + 1])
+                steps = _log_steps_end(pending)
+                c_on, c_off = _closed_form_thresholds(steps, view)
+                rms_px = _rms_own_thresholds(steps, view, c_on, c_off)
                 ssr[i] += float(np.nansum(rms_px**2 * d.mask.sum(1)))
     best = int(np.argmin(ssr))
     psf = float(psf_sigmas_px[best])
