@@ -160,6 +160,21 @@ def test_profiled_residuals_derivative_is_the_automatic_one(capture):
             # (jit against eager arithmetic: d·u − σ cancels to ~1e-13)
             np.testing.assert_allclose(traced, fixed, rtol=0, atol=1e-11)
 
+        # Reverse mode through the written-out derivative, against finite differences.
+        def loss(r):
+            res = ev.calibration.chart_residuals(r, data, per_pixel=True)
+            return jnp.sum(res**2)
+
+        grad = eqx.filter_grad(loss)(rig)
+        for where, h in ((lambda r: r.beta_nm_per_rad, 1e-4),
+                         (lambda r: r.baseline_rel, 1e-8)):  # fmt: skip
+            v = where(rig)
+            fd = (
+                loss(eqx.tree_at(where, rig, v + h))
+                - loss(eqx.tree_at(where, rig, v - h))
+            ) / (2 * h)
+            assert float(where(grad)) == pytest.approx(float(fd), rel=1e-4)
+
 
 def test_gradients_finite_at_hard_points(capture):
     _, chart, events, _ = capture
