@@ -353,6 +353,7 @@ def _lowpassed_values(rig: Rig, traces: BandTable):
     """:func:`lowpassed_traces`' values, one program for every block of a pass."""
     return lowpassed_traces(rig, traces).values
 
+
 #: :func:`_log_steps` pads the chart's distinct spectra to at least this many (and to
 #: a power of two): a blurred chart's band of rows has ~4–32 distinct levels, and
 #: with the photoreceptor each count was a compilation of ~0.8 s on 2 cores.
