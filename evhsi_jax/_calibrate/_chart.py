@@ -335,14 +335,21 @@ def _width(rig, col):
     return rig.column_offsets_us.shape[0]
 
 
-def _device(d: ChartData, dtype):
+def _host_lists(d: ChartData, dtype):
+    """The event lists as the model's passes take them, `(t, polarity, mask,
+    column, spectrum)`, host arrays (times in `dtype`, polarity int32)."""
     return (
-        jnp.asarray(d.t_us, dtype),
-        jnp.asarray(d.polarity, jnp.int32),
-        jnp.asarray(d.mask),
-        jnp.asarray(d.column),
-        jnp.asarray(d.spectrum),
+        np.asarray(d.t_us, dtype),
+        np.asarray(d.polarity, np.int32),
+        np.asarray(d.mask),
+        np.asarray(d.column),
+        np.asarray(d.spectrum),
     )
+
+
+def _device(d: ChartData, dtype):
+    """:func:`_host_lists` as JAX arrays."""
+    return tuple(jnp.asarray(a) for a in _host_lists(d, dtype))
 
 
 _log_steps_jit = eqx.filter_jit(chart_log_steps)

@@ -70,6 +70,7 @@ from .._reconstruct import lit_interval_us, noise_model, screen_events
 from ._chart import (
     ChartData,
     _closed_form_thresholds,
+    _host_lists,
     _log_steps,
     _with_column_offsets,
     chart_data,
@@ -203,12 +204,9 @@ def _bucketed(data: ChartData, dtype):
         k = int(need[start])
         stop = start + int(np.sum(need[start:] == k))
         part = data.subset(slice(start, stop))
-        # Cut on the host (as `_device` types them), one transfer per array: with
-        # JAX operations each bucket's pads and reshapes were ~40 small compilations
-        # (~1 s) in a new process.
-        host = (np.asarray(part.t_us, dtype), np.asarray(part.polarity, np.int32),
-                part.mask, part.column, part.spectrum)  # fmt: skip
-        host = tuple(a[:, :k] if a.ndim == 2 else a for a in host)
+        # Cut on the host, one transfer per array: with JAX operations each bucket's
+        # pads and reshapes were ~40 small compilations (~1 s) in a new process.
+        host = tuple(a[:, :k] if a.ndim == 2 else a for a in _host_lists(part, dtype))
         n = stop - start
         block = int(max(1, min(n, BLOCK_EVENTS // k)))
         n_blocks = -(-n // block)
@@ -853,16 +851,19 @@ def _fit_chart_float64(
         args = (params, jnp.asarray(profile), keep, fit)
         return np.asarray(call_exported("calibrate_residuals", _fit_residuals, args))
 
-    def rms_of(res, keep):
+    def rms_of(sum_sq, keep):  # over the events of the kept pixels
         n = int((data.mask & (np.asarray(keep) > 0)[:, None]).sum())
-        return float(np.sqrt(np.sum(np.square(res, dtype=np.float64)) / max(n, 1)))
+        return float(np.sqrt(sum_sq / max(n, 1)))
+
+    def sum_sq(res):
+        return float(np.sum(np.square(res, dtype=np.float64)))
 
     # Jacobi scaling by change of variables (u = θ·s, s = column norms of the Jacobian at
     # the start): the Gauss–Newton matrix then has a unit diagonal and is "identity plus
     # the rank-4 coupling of the global parameters", so the matrix-free CG inside each
     # Levenberg–Marquardt step converges in a few iterations.
     scale, ss0 = call_exported("calibrate_scale", _jacobi_scale, (p0, keep, fit))
-    r0 = float(jnp.sqrt(ss0 / max(int(data.mask.sum()), 1)))
+    r0 = rms_of(float(ss0), keep)
     # Stage 1: one threshold pair for all pixels. Stage 2 (per_pixel): the same fit with
     # every pixel's thresholds profiled out, so per-pixel mismatch cannot bias β, c, τx;
     # the thresholds then follow in closed form and the rig's global pair is their mean.
@@ -890,7 +891,7 @@ def _fit_chart_float64(
             print(
                 f"calibrate (profiled={profile}): "
                 f"{'converged' if converged else 'not converged'}, rms "
-                f"{rms_of(residuals(params, profile, keep), keep):.5f}"
+                f"{rms_of(sum_sq(residuals(params, profile, keep)), keep):.5f}"
             )
         if not profile:
             # Robustness: a pixel with an event the model cannot explain (a noise
@@ -902,7 +903,7 @@ def _fit_chart_float64(
             if 0 < outlier_pixels < 0.5 * bad_px.size:
                 keep = jnp.asarray(~bad_px, dtype)
     res_final = residuals(params, per_pixel, keep)
-    rms = rms_of(res_final, keep)
+    rms = rms_of(sum_sq(res_final), keep)
     kept = np.asarray(keep) > 0
     data = dataclasses.replace(data, mask=data.mask & kept[:, None])
     fitted = _apply(params, rig, basis)
