@@ -315,7 +315,7 @@ MAX_AUTO_CPU_DEVICES = 8
 def _cpu_devices(devices) -> None:
     """`--devices N` (N > 1) on a CPU: ask XLA for N host devices, so the pixels can be
     sharded over them and fill the cores (one CPU device keeps ~1.4 of 2 cores busy;
-    two ran 1.77x as fast on the 2-core machine, README "Performance"). The default
+    two ran 1.77x as fast on the 2-core machine in an earlier session). The default
     (`None`, auto) asks for one per usable core, at most `MAX_AUTO_CPU_DEVICES`.
     Must run before JAX creates its backend (in-process callers whose JAX already
     started keep their devices); a device count already in XLA_FLAGS wins. Harmless on

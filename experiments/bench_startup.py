@@ -7,9 +7,12 @@ folder (compiles everything), the rest with the cache it filled. Prints the time
 (medians of the warm runs) and this machine's float32 matmul GFLOP/s.
 
 Both caches start empty: JAX's (`EVHSI_CACHE_DIR`) and numba's (`NUMBA_CACHE_DIR`, a
-fresh folder: the host kernels and, with `--backends cuda`, the CUDA kernel). The
-"cache off" run turns off JAX's cache and the CUDA kernel's (`EVHSI_CUDA_CACHE=0`);
-numba's host kernels are then still loaded from the folder the first runs filled.
+fresh folder: the host kernels and, with `--backends cuda`, the CUDA kernel). Each
+command runs first with the cache off — JAX's cache and the CUDA kernel's
+(`EVHSI_CUDA_CACHE=0`) off, numba's folder holding only what the capture's simulation
+stored, so that run also compiles the command's numba kernels, as a fresh install's
+first process does, and leaves them in the folder — then with JAX's cache empty
+("first run"), then `--repeats` times with it filled.
 `--backends jax,cuda` times `evhsi reconstruct --backend B` for each (a GPU).
 
     .venv/bin/python experiments/bench_startup.py [--size 96x144] [--repeats 3]

@@ -102,7 +102,7 @@ TAU_SCALE_US = 100.0  # τx parameter unit in the solver
 #: first stage is only a start for the second. These tolerances take 24 steps there
 #: (25–28 instead of 46 on the `realistic` chart, with the blocks below of 8,192 and
 #: 4,096 events) and move every fitted value by < 1e-8 relative and τx by < 3e-8 µs
-#: (README, Performance, "Calibration").
+#: (experiments/PERFORMANCE_LOG.md, "Stopping tests").
 LM_TOL = ((1e-4, 1e-5), (1e-5, 1e-6))
 CURV_SCALE_NM = 1.0  # sweep-curvature parameter unit in the solver
 SMOOTH_WEIGHT = 0.02  # residual weight of one µs of τx second difference

@@ -4,7 +4,7 @@ forms (`return_rows=True`).
 
 The JAX path on a GPU forms Q = RᵀR as a batched matrix product and solves it with
 XLA's batched Cholesky (cuSOLVER): Q goes through the GPU's memory three times and the
-Cholesky runs at ~1 TFLOP/s on an H100 (README, Performance, "One GPU"). Here one
+Cholesky runs at ~1 TFLOP/s on an H100 (experiments/PERFORMANCE_LOG.md, "One GPU"). Here one
 thread block (one warp) holds one pixel's system in shared memory from the first row
 to the answer:
 
@@ -29,7 +29,7 @@ multiprocessor instead of 9 (Q is read again only by the active-set steps and th
 final gradient). The hot loops index in 32 bits (`_u`, `_tri`): numba's integers are
 64-bit, and a profile of the first kernel (Nsight Compute, H100) found it
 instruction-bound, much of its ~134k instructions per pixel 64-bit index
-arithmetic (README, Performance, "One GPU").
+arithmetic (experiments/PERFORMANCE_LOG.md, "One GPU").
 
 Arithmetic is float32, as the JAX path's (its accuracy against a float64 solve is
 measured by `experiments/bench_gpu_kernel.py`). The warp votes and shuffles have
@@ -59,13 +59,13 @@ SIM_THREADS = 4
 #: Q in a global scratch array after its assembly (one shared triangle per pixel:
 #: ~15 kB of shared memory per block instead of ~25, so 15 resident blocks per
 #: multiprocessor instead of 9; on the H100 0.152 s against 0.218 s for the
-#: 1280×720 sweep, README "One GPU").
+#: 1280×720 sweep, experiments/PERFORMANCE_LOG.md, "One GPU").
 Q_GLOBAL = True
 #: Cap on registers per thread (None: the compiler's choice).
 MAX_REGISTERS = None
 #: The next pass's rows read while the current one is added (see `make_kernel`;
 #: on the H100 with Q in shared memory 0.198 s against 0.218 s, at 118 registers
-#: instead of 79; not measured with the default, Q_GLOBAL; README "One GPU").
+#: instead of 79; not measured with the default, Q_GLOBAL; PERFORMANCE_LOG.md, "One GPU").
 PREFETCH = False
 #: Source lines in the compiled code, for a profiler (`EVHSI_CUDA_LINEINFO=1`).
 LINEINFO = os.environ.get("EVHSI_CUDA_LINEINFO", "") not in ("", "0")

@@ -5,8 +5,8 @@ delay-shifted events, then replaces each event row by the low-passed sensor mode
 linearised at that answer (one Gauss–Newton pass, :func:`._problem._lowpass_rows`).
 JAX forms those rows by running the filter on the rig's whole time grid for every
 pixel at once: a `(pixels, grid, M+1)` array through an associative scan, ~1,200
-grid points per sweep — on an H100 most of the realistic sweep's time (README,
-Performance, "One GPU").
+grid points per sweep — on an H100 most of the realistic sweep's time (experiments/
+PERFORMANCE_LOG.md, "The path a real rig runs, on a GPU").
 
 Here one warp walks one pixel's grid in order, each thread holding the filter's state
 for its own entries of `[log, g_1 … g_M]` in registers, so nothing of the grid goes

@@ -916,7 +916,7 @@ BACKENDS = ("auto", "jax", "fused", "cuda")
 #: is kept in numba's on-disk cache (`_cuda_kernel.CACHE`), so a new process loads it
 #: instead of compiling it; what stays is numba-cuda's own start in each process,
 #: ~1.1 s on an H100's host (its import 0.53 s, its target's set-up 0.59 s, in a
-#: profile). Measured on an H100 (README, Performance, "One GPU"): a warm whole
+#: profile). Measured on an H100 (experiments/PERFORMANCE_LOG.md, "One GPU"): a warm whole
 #: 1280×720 sweep takes 0.51 s with the kernel and 0.68 s with JAX (0.68 s against
 #: 1.00 s with the noise model), at the same accuracy against a float64 solve; whole
 #: `evhsi reconstruct` processes with both caches filled: 96×144, 6.6 s against
