@@ -76,11 +76,15 @@ class FusedProblem:
     """The rig- and configuration-dependent inputs of the kernel, built once.
 
     `lanes`: pixels whose systems are factorised side by side (4, the default; 1: one
-    pixel at a time, the reference the tests compare with)."""
+    pixel at a time, the reference the tests compare with). `long_rows`: with four
+    lanes, the event rows that span far more than a band (`_fused_jit.LONG_SPAN`: a
+    sweep's first event against a reference in the sweep before) are left out of Q's
+    envelope and added by the Woodbury identity (the default; False adds them to Q
+    like every other row, as the one-pixel kernel does)."""
 
     def __init__(self, rig: Rig, table, cfg: ProblemConfig, spec, width: int,
                  column_offsets_us: np.ndarray, sweeps: int, noise=None, *,
-                 lanes: int | None = None):  # fmt: skip
+                 lanes: int | None = None, long_rows: bool = True):  # fmt: skip
         from ._fused_jit import LANES, N_PAR  # (numba: only when the fused path runs)
 
         if lanes not in (None, 1, LANES):
@@ -134,7 +138,8 @@ class FusedProblem:
             [sweeps, cfg.int_points, INT_TARGETS.index(cfg.int_target),
              int(cfg.normalise), int(rig.reset_mode == "release"), spec.iters,
              int(noise is not None), cfg.robust_steps, cfg.lowpass_passes,
-             int(rig.samples_per_sweep), LANES if lanes is None else lanes],
+             int(rig.samples_per_sweep), LANES if lanes is None else lanes,
+             int(long_rows)],
             np.int64,
         )  # fmt: skip
         # Dark-channel prior: per neighbour difference, ½(dim_k + dim_k+1), dim the

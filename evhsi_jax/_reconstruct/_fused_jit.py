@@ -13,7 +13,10 @@ four rows per pass over Q), their priors added, and the four systems factorised 
 solved together (`_solve_lanes`). The loops of both are short (a row's span, an
 envelope row: ~20 entries), and their fixed cost — loop set-up, mispredicted exits —
 is then paid once for four pixels. A pixel whose minimiser has a negative channel is
-taken out of the lane layout for its active-set steps. With the noise model each pixel
+taken out of the lane layout for its active-set steps. Event rows whose reference
+lies in the sweep before (blue against red: `LONG_SPAN`) are left out of the lanes'
+Q and added after the factorisation by the Woodbury identity (`_lane_long_rows`).
+With the noise model each pixel
 of the group keeps its event rows and drift part, and the group is assembled and
 solved together again after each photoreceptor pass and reweighting (a pixel whose
 reweighting has converged sits out, its system rebuilt unchanged). The photoreceptor
@@ -56,7 +59,7 @@ P_SIG_C, P_SIG_T, P_DW, P_FLOOR, P_ADARK, P_RC, P_REJECT = range(19, 26)
 P_BASE_REL, P_LOG_EPS = range(26, 28)
 N_PAR = 28
 I_SWEEPS, I_POINTS, I_TARGET, I_NORM, I_RELEASE, I_ITERS, I_NOISE, I_ROBUST = range(8)
-I_LOWPASS, I_SAMPLES, I_LANES = range(8, 11)
+I_LOWPASS, I_SAMPLES, I_LANES, I_LONG = range(8, 12)
 #: Pixels whose factorisations run side by side, one per SIMD lane (float64 × 4:
 #: AVX2). The lane code is written out for four lanes.
 LANES = 4
@@ -616,6 +619,24 @@ def _lane_coefs(sw, r, rl, e):
 #: Rows added to Q per pass over it in `_lane_rows`.
 ROWS_PER_PASS = 4
 
+#: An event row whose reference lies in the sweep before — a sweep's first event
+#: against the previous sweep's last one (a carried reference on the per-sweep path,
+#: every sweep boundary of a whole-file reconstruction) — and which spans more than
+#: this many channels (a band segment spans ~20) is *long*: its two band segments
+#: lie at the spectrum's two ends (blue against red). Added into Q it widens Q's
+#: envelope from its first column down every row it reaches: on the second sweep of
+#: a 96×144 ColorChecker from 22.3 to 35.5 columns per row on average, 2.8× the
+#: factorisation's multiply-adds. So the lanes leave up to `LONG_ROWS` long rows per
+#: pixel out of Q (B = Q − Σ s r rᵀ) and add them after the factorisation by the
+#: Woodbury identity (:func:`_lane_long_rows`). Rows within a sweep are never held
+#: out, however wide: a gap between two events is also spanned by the anti-drift
+#: rows in it, so Q's envelope stays as wide (holding out event rows wider than 40
+#: channels on a single sweep cost 0.92× in a development check). Not with the
+#: photoreceptor rows, which are wide by nature (the filter remembers every channel
+#: the band has lit).
+LONG_SPAN = 40
+LONG_ROWS = 4
+
 
 @njit(slp=True)
 @no_type_check
@@ -741,6 +762,161 @@ def _lane_rows(rows, los, his, cs, ws, counts, nl, nrows, rl, sw, st, ql, qvl, f
             qvl[e + _u(3)] = v3
             if s0 < fu[i]:
                 fu[i] = s0
+
+
+@njit(inline=True)
+@no_type_check
+def _hold_long_rows(nl, evlos, evhis, evxs, zzs, g_k, lng, lzz):
+    """Take the group's long event rows (those marked in `evxs`, their reference in
+    the sweep before, spanning more than `LONG_SPAN` channels; at most `LONG_ROWS`
+    per pixel) out of the next accumulation: their spans emptied and weights zeroed; per pixel q
+    `lng[q, 0]` of them, row n's index `lng[q, 1 + n]`, its span's end
+    `lng[q, 1 + LONG_ROWS + n]`, its weight `lzz[q, n]`. :func:`_restore_long_rows`
+    undoes it."""
+    for q in range(LANES):
+        lng[q, 0] = 0
+    for q in range(nl):
+        n = 0
+        for j in range(g_k[q]):
+            if n < LONG_ROWS and evxs[q, j] and evhis[q, j] - evlos[q, j] > LONG_SPAN:
+                lng[q, 1 + n] = j
+                lng[q, 1 + LONG_ROWS + n] = evhis[q, j]
+                lzz[q, n] = zzs[q, j]
+                evhis[q, j] = evlos[q, j]
+                zzs[q, j] = 0.0
+                n += 1
+        lng[q, 0] = n
+
+
+@njit(inline=True)
+@no_type_check
+def _restore_long_rows(nl, evhis, zzs, lng, lzz):
+    """The long rows' spans and weights back (:func:`_hold_long_rows`)."""
+    for q in range(nl):
+        for n in range(lng[q, 0]):
+            evhis[q, lng[q, 1 + n]] = lng[q, 1 + LONG_ROWS + n]
+            zzs[q, lng[q, 1 + n]] = lzz[q, n]
+
+
+@njit(inline=True)
+@no_type_check
+def _lane_woodbury(q, lng, lzz, evrs, evlos, zl, v, hw, m):
+    """v ← v − Z u∘w for pixel (lane) q, with (I + U RᵀZ U) w = u∘(Rᵀv): from
+    v = −B⁻¹b to −Q⁻¹b for Q = B + R S Rᵀ (:func:`_lane_long_rows`; `zl` = −Z)."""
+    nk = lng[q, 0]
+    hm = hw[: LONG_ROWS * LONG_ROWS]
+    rhs = hw[LONG_ROWS * LONG_ROWS : LONG_ROWS * LONG_ROWS + LONG_ROWS]
+    y = hw[LONG_ROWS * LONG_ROWS + LONG_ROWS :]
+    for k in range(nk):
+        r = evrs[q, lng[q, 1 + k]]
+        lo = evlos[q, lng[q, 1 + k]]
+        hi = lng[q, 1 + LONG_ROWS + k]
+        a = 0.0
+        for i in range(lo, hi):
+            a += r[i] * v[4 * i + q]
+        rhs[k] = lzz[q, k] * a
+        for k2 in range(nk):  # (r_k · z_k2)
+            g = 0.0
+            zk = zl[k2]
+            for i in range(lo, hi):
+                g -= r[i] * zk[4 * i + q]
+            hm[k * LONG_ROWS + k2] = lzz[q, k] * g * lzz[q, k2]
+    for k in range(nk):  # H = I + U G U, symmetrised; its Cholesky factor
+        for k2 in range(k):
+            hm[k * LONG_ROWS + k2] = 0.5 * (
+                hm[k * LONG_ROWS + k2] + hm[k2 * LONG_ROWS + k]
+            )  # fmt: skip
+        hm[k * LONG_ROWS + k] += 1.0
+    for k in range(nk):
+        for k2 in range(k + 1):
+            t = hm[k * LONG_ROWS + k2]
+            for c in range(k2):
+                t -= hm[k * LONG_ROWS + c] * hm[k2 * LONG_ROWS + c]
+            if k2 == k:
+                hm[k * LONG_ROWS + k] = math.sqrt(t)
+            else:
+                hm[k * LONG_ROWS + k2] = t / hm[k2 * LONG_ROWS + k2]
+    for k in range(nk):  # forward, then backward substitution
+        t = rhs[k]
+        for c in range(k):
+            t -= hm[k * LONG_ROWS + c] * y[c]
+        y[k] = t / hm[k * LONG_ROWS + k]
+    for k in range(nk - 1, -1, -1):
+        t = y[k]
+        for c in range(k + 1, nk):
+            t -= hm[c * LONG_ROWS + k] * y[c]
+        y[k] = t / hm[k * LONG_ROWS + k]
+    for k in range(nk):
+        yk = lzz[q, k] * y[k]
+        zk = zl[k]
+        for i in range(m):  # v − Z y, and zl holds −Z
+            v[4 * i + q] += zk[4 * i + q] * yk
+
+
+@njit(slp=True)
+@no_type_check
+def _lane_long_rows(nl, todo, fail, lng, lzz, evrs, evlos, ptr, fu, lf, inv, xl, lw, m):
+    """The minimisers of Q = B + Σ_k s_k r_k r_kᵀ from those of B (`xl`, after
+    :func:`_solve_lanes` factorised B, the lanes' Q, into `lf`, `inv`), for the
+    pixels' long rows r_k (weights s_k = `lzz`²; :func:`_hold_long_rows`), by the
+    Woodbury identity: Z = B⁻¹R (one lane solve per long row, the four lanes side by
+    side), then per pixel x = x_B − Z u∘w with (I + U RᵀZ U) w = u∘(Rᵀx_B), U =
+    diag(u), u_k = `lzz`: a K×K system, I plus a positive semidefinite matrix,
+    solved by Cholesky (:func:`_lane_woodbury`). Pixels without long rows keep `xl`
+    as it is. `lw` (LONG_ROWS + 2, 4M) is work space.
+
+    The answers are the one-pixel kernel's to rounding, which B (worse conditioned
+    than Q, as it lacks rows) amplifies on ill-conditioned pixels: on the second
+    sweep of a 96×144 ColorChecker (per-sweep path) the largest change was 0.015°
+    SAM, every KKT residual ≤ 4e-13 (development check). One step of iterative
+    refinement (the residual Q x + q, corrected by the same identity) brought the
+    residuals to 2e-15 without moving the answers nearer the one-pixel kernel's, at
+    ~9 % of that sweep's time: not kept."""
+    zl = lw[:LONG_ROWS]
+    rv = lw[LONG_ROWS]
+    hw = lw[LONG_ROWS + 1]
+    kmax = 0
+    for q in range(nl):
+        if todo[q] and not fail[q]:
+            kmax = max(kmax, lng[q, 0])
+    if kmax == 0:
+        return
+    lanes = _lane_index(nl)
+    for k in range(kmax):
+        for c in range(_u(4 * m)):
+            rv[c] = 0.0
+        for lane in range(4):
+            q = lanes[lane]
+            if todo[q] and k < lng[q, 0]:
+                r = evrs[q, lng[q, 1 + k]]
+                for i in range(evlos[q, lng[q, 1 + k]], lng[q, 1 + LONG_ROWS + k]):
+                    rv[4 * i + lane] = r[i]
+        _lane_solve(lf, ptr, fu, inv, rv, zl[k], m)  # −B⁻¹ r_k
+    for q in range(nl):
+        if todo[q] and not fail[q] and lng[q, 0] > 0:
+            _lane_woodbury(q, lng, lzz, evrs, evlos, zl, xl, hw, m)
+
+
+@njit(inline=True)
+@no_type_check
+def _add_long_rows(qm, first, q, lng, lzz, evrs, evlos):
+    """Pixel `q`'s long rows into its own Q (lower triangle; its q holds them
+    already: :func:`_lane_assemble`), when it leaves the lanes for the active set
+    with its whole system."""
+    for n in range(lng[q, 0]):
+        j = lng[q, 1 + n]
+        r = evrs[q, j]
+        lo = evlos[q, j]
+        s2 = lzz[q, n] * lzz[q, n]
+        for i in range(lo, lng[q, 1 + LONG_ROWS + n]):
+            ri = s2 * r[i]
+            qi = qm[i]
+            if lo < first[i]:  # the envelope widens: those entries were not set
+                for c in range(_u(lo), _u(first[i])):
+                    qi[c] = 0.0
+                first[i] = lo
+            for c in range(_u(lo), _u(i + 1)):
+                qi[c] += ri * r[c]
 
 
 @njit
@@ -1360,9 +1536,13 @@ def _write_answer(r, steps, qm, first, qv, x, gr, out_x, out_kkt, out_steps):
 
 @njit(inline=True)
 @no_type_check
-def _write_lanes(r0, nl, steps, ql, qvl, fu, xs, xl, gl, out_x, out_kkt, out_steps):
+def _write_lanes(
+    r0, nl, steps, ql, qvl, fu, xs, xl, gl, out_x, out_kkt, out_steps, lng, lzz, evrs,
+    evlos, dg,
+):  # fmt: skip
     """:func:`_write_answer` of the group's pixels `r0 + l`, their systems in the lane
-    layout (the gradients of the four side by side)."""
+    layout (the gradients of the four side by side) plus their long rows (`lng`, `lzz`,
+    :func:`_lane_assemble`; none without `split`). `dg` (M) is work space."""
     m = xs.shape[1]
     lanes = _lane_index(nl)
     for lane in range(4):
@@ -1378,9 +1558,22 @@ def _write_lanes(r0, nl, steps, ql, qvl, fu, xs, xl, gl, out_x, out_kkt, out_ste
             out_kkt[r] = np.nan
             out_steps[r] = -1
             continue
+        x = xs[lane]
+        for i in range(m):
+            dg[i] = ql[4 * (i * m + i) + lane]
+        for n in range(lng[lane, 0]):  # g += s r (r·x); Q's diagonal += s r²
+            row = evrs[lane, lng[lane, 1 + n]]
+            lo = evlos[lane, lng[lane, 1 + n]]
+            s2 = lzz[lane, n] * lzz[lane, n]
+            t = 0.0
+            for i in range(lo, lng[lane, 1 + LONG_ROWS + n]):
+                t += row[i] * x[i]
+            for i in range(lo, lng[lane, 1 + LONG_ROWS + n]):
+                gl[4 * i + lane] += s2 * row[i] * t
+                dg[i] += s2 * row[i] * row[i]
         qmax = 0.0
         for i in range(m):
-            qmax = max(qmax, abs(ql[4 * (i * m + i) + lane]))
+            qmax = max(qmax, abs(dg[i]))
         x = xs[lane]
         kkt = 0.0
         for i in range(m):
@@ -1395,7 +1588,7 @@ def _write_lanes(r0, nl, steps, ql, qvl, fu, xs, xl, gl, out_x, out_kkt, out_ste
 @no_type_check
 def _solve_group(
     nl, todo, qms, qvs, firsts, xs, steps, ql, qvl, fu, ptr, lfl, invl, xl, fail,
-    free, lf, inv, p, gr, par, max_iters,
+    free, lf, inv, p, gr, par, max_iters, split, lng, lzz, evrs, evlos, lw,
 ):  # fmt: skip
     """The box QPs of the group's pixels marked in `todo`, answers into `xs`, steps
     into `steps` (−1: a factorisation failed). One pixel (`qms`, `qvs`, `firsts`):
@@ -1404,7 +1597,8 @@ def _solve_group(
     minimiser has a negative channel goes on from it with :func:`_box_qp`'s
     active-set steps on its own system, taken out of the lane layout, and a pixel
     whose lane factorisation failed runs `_box_qp` from the start, as the one-pixel
-    path does."""
+    path does. With `split`, the lanes' Q leaves out the pixels' long rows, added by
+    :func:`_lane_long_rows` (and into a pixel's own Q when it leaves the lanes)."""
     m = qvs.shape[1]
     tol = par[P_TOL]
     if qms.shape[0] == 1:
@@ -1417,6 +1611,10 @@ def _solve_group(
             )  # fmt: skip
         return
     _solve_lanes(ql, qvl, fu, ptr, lfl, invl, xl, fail, m)
+    if split:
+        _lane_long_rows(
+            nl, todo, fail, lng, lzz, evrs, evlos, ptr, fu, lfl, invl, xl, lw, m
+        )  # fmt: skip
     for lane in range(nl):
         if not todo[lane]:
             continue
@@ -1429,6 +1627,8 @@ def _solve_group(
                 neg = True
         if neg or fail[lane]:
             _lane_unpack(ql, qvl, fu, lane, qms[lane], qvs[lane], firsts[lane], m)
+            if split:  # (its q already holds the long rows' part)
+                _add_long_rows(qms[lane], firsts[lane], lane, lng, lzz, evrs, evlos)
             steps[lane] = _box_qp(
                 qms[lane], qvs[lane], firsts[lane], free, lf, inv, x, p, gr, tol,
                 max_iters, not fail[lane],
@@ -1444,18 +1644,33 @@ def _solve_group(
 @no_type_check
 def _lane_assemble(
     restore, nl, ql, qvl, qdl, qvdl, fu, evrs, evlos, evhis, evcs, zzs, g_k, rl, sw, st,
-    spec, spec_first, g_spec_w, par,
+    spec, spec_first, g_spec_w, par, split, evxs, lng, lzz,
 ):  # fmt: skip
     """:func:`_assemble` of the group's four pixels in the lane layout: Q, q ← (the
     kept drift part, if `restore`) + each pixel's event rows weighted by its `zzs` +
-    the priors."""
+    the priors. With `split`, each pixel's long rows (`LONG_SPAN`) add their part of
+    q only; their part of Q is left to :func:`_lane_long_rows` (listed in `lng`,
+    `lzz`: :func:`_hold_long_rows`)."""
     m = spec.shape[0]
     if restore:
         _lane_copy(qdl, qvdl, ql, qvl, fu, m)
+    if split:
+        _hold_long_rows(nl, evlos, evhis, evxs, zzs, g_k, lng, lzz)
     nrows = max(g_k[:nl].max(), 0)  # the most event rows of the group's pixels
     _lane_rows(
         evrs, evlos, evhis, evcs, zzs, g_k, nl, nrows, rl, sw, st, ql, qvl, fu, m
     )  # fmt: skip
+    if split:
+        _restore_long_rows(nl, evhis, zzs, lng, lzz)
+        lanes = _lane_index(nl)
+        for lane in range(4):
+            q = lanes[lane]
+            for n in range(lng[q, 0]):
+                j = lng[q, 1 + n]
+                r = evrs[q, j]
+                f = lzz[q, n] * lzz[q, n] * evcs[q, j]
+                for i in range(evlos[q, j], lng[q, 1 + LONG_ROWS + n]):
+                    qvl[4 * i + lane] += f * r[i]
     _lane_priors(
         ql, fu, spec, spec_first, g_spec_w, nl, par[P_RIDGE], par[P_SPEC_TRACE], m
     )
@@ -1561,6 +1776,7 @@ def solve_pixels(
     evcs = np.zeros((group, kmax))
     evlos = np.zeros((group, kmax), np.int64)
     evhis = np.zeros((group, kmax), np.int64)
+    evxs = np.zeros((group, kmax), np.bool_)  # … which refer to an earlier sweep …
     nd = group if keep_drift else 1
     qds = np.zeros((nd, m, m))  # … and its drift part
     qvds = np.zeros((nd, m))
@@ -1582,6 +1798,12 @@ def solve_pixels(
     fu = np.arange(m)
     ptr = np.zeros(m, np.int64)
     fail = np.zeros(LANES, np.bool_)
+    # The group's long event rows, kept out of the lanes' Q (_hold_long_rows,
+    # _lane_long_rows): not with the photoreceptor rows (wide by nature).
+    split = lanes and not lowpass and ipar[I_LONG] != 0
+    lng = np.zeros((LANES, 1 + 2 * LONG_ROWS), np.int64)
+    lzz = np.zeros((LANES, LONG_ROWS))
+    lw = np.zeros((LONG_ROWS + 2, max(LANES * m, LONG_ROWS * (LONG_ROWS + 2))))
     # The photoreceptor pass of a group's pixels of one column side by side
     # (_lane_lowpass_rows).
     lane_lp = lowpass and group == LANES
@@ -1620,6 +1842,7 @@ def solve_pixels(
             evc = evcs[lane]
             evlo = evlos[lane]
             evhi = evhis[lane]
+            evx = evxs[lane]
             qd = qds[lane if keep_drift else 0]
             qvd = qvds[lane if keep_drift else 0]
             pix = sel[r0 + lane]
@@ -1707,6 +1930,9 @@ def solve_pixels(
                 evc[i] = w * base * (1.0 - ratio)
                 evlo[i] = min(lohi[0], lohi[1])
                 evhi[i] = lohi[1]
+                # Its reference in the sweep before (a carried reference, or a
+                # sweep boundary): the two bands lie far apart (LONG_SPAN).
+                evx[i] = (d > 0.0) if i == 0 else sweep_of[i] != sweep_of[i - 1]
             lohi[0] = m
             lohi[1] = 0
             # Anti-drift rows over each sweep's lit interval.
@@ -1830,14 +2056,16 @@ def solve_pixels(
                 _lane_copy(ql, qvl, qdl, qvdl, fu, m)
             _lane_assemble(
                 False, nl, ql, qvl, qdl, qvdl, fu, evrs, evlos, evhis, evcs, zzs, g_k,
-                rl, sw, rw, spec, spec_first, g_spec_w, par,
+                rl, sw, rw, spec, spec_first, g_spec_w, par, split, evxs, lng,
+                lzz,
             )  # fmt: skip
         # The group's pixels solved together; then each pixel's further passes.
         for lane in range(group):
             todo[lane] = lane < nl
         _solve_group(
             nl, todo, qms, qvs, firsts, xs, g_steps, ql, qvl, fu, ptr, lfl, invl, xl,
-            fail, free, lf, inv, p, gr, par, max_iters,
+            fail, free, lf, inv, p, gr, par, max_iters, split, lng, lzz, evrs, evlos,
+            lw,
         )  # fmt: skip
         # The photoreceptor model linearised at the answer replaces the delay-shifted
         # event rows (Gauss–Newton passes).
@@ -1892,11 +2120,13 @@ def solve_pixels(
             if lanes:
                 _lane_assemble(
                     True, nl, ql, qvl, qdl, qvdl, fu, evrs, evlos, evhis, evcs, zzs,
-                    g_k, rl, sw, rw, spec, spec_first, g_spec_w, par,
+                    g_k, rl, sw, rw, spec, spec_first, g_spec_w, par, split, evxs,
+                    lng, lzz,
                 )  # fmt: skip
             _solve_group(
                 nl, todo, qms, qvs, firsts, xs, g_steps, ql, qvl, fu, ptr, lfl, invl,
-                xl, fail, free, lf, inv, p, gr, par, max_iters,
+                xl, fail, free, lf, inv, p, gr, par, max_iters, split, lng, lzz, evrs,
+                evlos, lw,
             )  # fmt: skip
         # Robust reweighting: rows far outside their noise count linearly (Huber)
         # or not at all; a pixel stops when none is far out.
@@ -1951,15 +2181,18 @@ def solve_pixels(
             if lanes:
                 _lane_assemble(
                     True, nl, ql, qvl, qdl, qvdl, fu, evrs, evlos, evhis, evcs, zzs,
-                    g_k, rl, sw, rw, spec, spec_first, g_spec_w, par,
+                    g_k, rl, sw, rw, spec, spec_first, g_spec_w, par, split, evxs,
+                    lng, lzz,
                 )  # fmt: skip
             _solve_group(
                 nl, todo, qms, qvs, firsts, xs, g_steps, ql, qvl, fu, ptr, lfl, invl,
-                xl, fail, free, lf, inv, p, gr, par, max_iters,
+                xl, fail, free, lf, inv, p, gr, par, max_iters, split, lng, lzz, evrs,
+                evlos, lw,
             )  # fmt: skip
         if lanes:
             _write_lanes(
-                r0, nl, g_steps, ql, qvl, fu, xs, xl, gl, out_x, out_kkt, out_steps
+                r0, nl, g_steps, ql, qvl, fu, xs, xl, gl, out_x, out_kkt, out_steps,
+                lng, lzz, evrs, evlos, p,
             )  # fmt: skip
         for lane in range(nl):
             _clear_events(evrs[lane], evlos[lane], evhis[lane], g_k[lane])  # next pixel

@@ -8,7 +8,13 @@ import pytest
 
 import evhsi_jax as ev
 from evhsi_jax._base._numba import numba_available, readonly
-from evhsi_jax._reconstruct import ProblemConfig, _fused, _pipeline
+from evhsi_jax._reconstruct import (
+    TIMESTAMP_CENTRE_US,
+    ProblemConfig,
+    _fused,
+    _pipeline,
+    _pixels,
+)
 
 pytestmark = pytest.mark.skipif(not numba_available(), reason="numba is not available")
 
@@ -105,8 +111,9 @@ def test_active_set_steps_match(captures):
 
 
 def _lanes_1_and_4(rig, events, info, sweeps):
-    """The kernel's answers with one pixel at a time and with four side by side, on
-    the pixels with events but the last one or two (a last group of three)."""
+    """The kernel's answers with one pixel at a time and with four side by side (the
+    long rows in Q too, as the one-pixel kernel has them), on the pixels with events
+    but the last one or two (a last group of three)."""
     h, w = SIZE
     noise = _pipeline.noise_model(rig)
     counts, starts, t, s = _fused_lists(rig, events, noise, sweeps)
@@ -117,7 +124,7 @@ def _lanes_1_and_4(rig, events, info, sweeps):
         prob = _fused.FusedProblem(
             rig, _pipeline.channel_table(rig), ProblemConfig(),
             _pipeline.solver_spec("auto"), w, np.asarray(rig.column_offsets(w)),
-            sweeps, noise, lanes=lanes,
+            sweeps, noise, lanes=lanes, long_rows=False,
         )  # fmt: skip
         answers.append(_fused.solve_fused(
             prob, sel, starts, counts, t, s, np.zeros(h * w),
@@ -143,6 +150,64 @@ def test_lanes_equal_one_pixel_at_a_time(captures, scene):
     steps1 = answers[0][2]
     assert np.all(steps1 >= 0) and (steps1.max() > 0) == (scene == "peaks")
     _assert_same_answers(answers)
+
+
+@pytest.mark.parametrize("noisy", [False, True])
+def test_long_rows_by_woodbury_give_the_same_optimum(noisy):
+    """A sweep's first event refers to the previous sweep's last one (blue against
+    red): rows that span the spectrum. The lanes leave them out of Q and add them by
+    the Woodbury identity (`long_rows`, the default); the answers are those with the
+    rows in Q, to the rounding an ill-conditioned pixel amplifies, the active-set
+    steps the same, every KKT residual small — on the second sweep of a capture cut
+    per sweep (the reference carried as the per-sweep path carries it), with and
+    without the noise model's weights and reweighting, and on pixels that need
+    active-set steps (leaving the lanes, they take their long rows along)."""
+    h, w = SIZE
+    kw = dict(threshold_noise=0.01, timestamp_jitter_us=5.0) if noisy else {}
+    rig = ev.Rig(**kw)
+    noise = _pipeline.noise_model(rig)
+    period = float(rig.period_us)
+    # Narrow peaks at both ends of the spectrum on a dark floor: each pixel's first
+    # event is blue and its reference red, and the bound x ≥ 0 is active.
+    wl = np.asarray(rig.wavelengths_nm)
+    rng = np.random.default_rng(2)
+    ends = (rng.uniform(wl[3], wl[12], (*SIZE, 1)), rng.uniform(wl[-12], wl[-3], (*SIZE, 1)))
+    two = sum(0.9 * np.exp(-0.5 * ((wl - c) / 6.0) ** 2) for c in ends)
+    two_peaks = ev.Scene.from_cube(two.astype(np.float32), wl)
+    for scene in (ev.load_scene("colorchecker", SIZE), two_peaks):
+        events, info = ev.simulate(scene, rig, sweeps=2, key=jr.key(5), return_info=True)
+        t = np.asarray(events.t_us)
+        t0 = int(round(period))
+        second = events.take(np.flatnonzero((t >= t0) & (t < 2 * t0)))
+        kept, _, _ = _pipeline.screen_events(second, rig, t0, noise, 1, None)
+        counts, starts, t_rel, sgn = _pixels.pixel_lists(kept, t0)
+        first = events.take(np.flatnonzero(t < t0))
+        pix = np.asarray(first.y, np.int64) * w + np.asarray(first.x)
+        last = np.full(h * w, -1, np.int64)
+        np.maximum.at(last, pix, np.asarray(first.t_us))
+        ref = np.where(last >= 0, last + TIMESTAMP_CENTRE_US + rig.refractory_us, np.nan)
+        lead = _pipeline._reference_lead_us(ref.reshape(h, w), t0, period, h, w)
+        assert np.count_nonzero(lead) > h * w // 2
+        sel = np.flatnonzero(counts)
+        args = (starts, counts, t_rel, sgn, lead, info.threshold_on.reshape(-1),
+                info.threshold_off.reshape(-1))  # fmt: skip
+        answers = []
+        for long_rows in (False, True):
+            prob = _fused.FusedProblem(
+                rig, _pipeline.channel_table(rig), ProblemConfig(),
+                _pipeline.solver_spec("auto"), w, np.asarray(rig.column_offsets(w)), 1,
+                noise, long_rows=long_rows,
+            )  # fmt: skip
+            answers.append(_fused.solve_fused(prob, sel, *args, threads=1))
+        (x0, kkt0, steps0), (x1, kkt1, steps1) = answers
+        np.testing.assert_array_equal(steps1, steps0)
+        assert np.all(steps1 >= 0)
+        assert not np.array_equal(x1, x0)  # the other route was taken
+        sam = ev.metrics.sam_map_deg(x1[None], x0[None])
+        assert np.nanmax(sam) < 0.02, np.nanmax(sam)
+        np.testing.assert_allclose(x1, x0, rtol=0, atol=1e-3 * np.abs(x0).max())
+        assert np.all(kkt1 < max(1e-9, 2 * kkt0.max()))
+    assert steps0.max() > 0  # the peaks needed active-set steps
 
 
 def test_lanes_equal_one_pixel_at_a_time_noise_aware():
