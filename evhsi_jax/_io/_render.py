@@ -44,16 +44,30 @@ def cube_to_srgb(cube, wavelengths_nm) -> np.ndarray:
     - `wavelengths_nm`: channel centres, shape `(M,)`, evenly spaced.
 
     **Returns:** sRGB in [0, 1], shape `(H, W, 3)`, float32.
+
+    A float32 cube is weighed in float32 (one matrix product over the cube as it is:
+    converting a 1280×720×72 cube to float64 and replacing its non-finite values
+    first had cost ~1.6 s per sweep of `reconstruct_sweeps`, which stores each
+    sweep's rendering); only pixels with a non-finite channel are weighed again in
+    float64 with NaN as 0 and ±inf as the largest finite numbers.
     """
     import colour
 
-    cube = np.asarray(cube, dtype=np.float64)
+    cube = np.asarray(cube)
+    if cube.dtype not in (np.float32, np.float64):
+        cube = cube.astype(np.float64)
     wl = np.asarray(wavelengths_nm, dtype=np.float64)
     if cube.ndim != 3 or cube.shape[-1] != wl.size:
         raise ValueError(
             f"cube shape {cube.shape} does not match {wl.size} wavelengths"
         )
-    xyz = np.nan_to_num(cube) @ _xyz_weights(tuple(np.round(wl, 6)))
+    weights = _xyz_weights(tuple(np.round(wl, 6)))
+    flat = cube.reshape(-1, wl.size)
+    xyz = (flat @ weights.astype(cube.dtype)).astype(np.float64)
+    bad = ~np.isfinite(xyz).all(axis=1)
+    if bad.any():
+        xyz[bad] = np.nan_to_num(flat[bad].astype(np.float64)) @ weights
+    xyz = xyz.reshape(*cube.shape[:-1], 3)
     rgb = colour.XYZ_to_sRGB(xyz, apply_cctf_encoding=True)
     return np.clip(rgb, 0.0, 1.0).astype(np.float32)
 

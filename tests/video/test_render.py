@@ -109,6 +109,23 @@ def test_nan_and_out_of_range():
     np.testing.assert_array_equal(rgb[0, 2], 0.0)
 
 
+def test_float32_cube_and_non_finite_channels():
+    """A float32 cube (weighed in float32) renders as its float64 copy to float32
+    rounding; a pixel with a NaN or infinite channel renders as the float64 cube
+    with NaN as 0 and ±inf as the largest finite numbers (`np.nan_to_num`)."""
+    rng = np.random.default_rng(4)
+    cube = rng.uniform(0.0, 1.2, (5, 6, 72)).astype(np.float32)
+    cube[1, 2, 10] = np.nan
+    cube[3, 4, 30] = np.inf
+    cube[4, 5, 0] = -np.inf
+    got = cube_to_srgb(cube, CENTRES)
+    want = cube_to_srgb(np.nan_to_num(cube.astype(np.float64)), CENTRES)
+    assert got.dtype == np.float32 and np.all(np.isfinite(got))
+    np.testing.assert_allclose(got, want, rtol=0, atol=2e-6)
+    for y, x in ((1, 2), (3, 4), (4, 5)):  # (weighed in float64 on both routes)
+        np.testing.assert_allclose(got[y, x], want[y, x], rtol=0, atol=1e-6)
+
+
 def test_other_channel_grids(weights):
     """A coarser cube of the same spectra renders the same colour."""
     fine = np.random.default_rng(0).random(72)
