@@ -45,3 +45,28 @@ def fused_inputs(sensor: str, size: str) -> SimpleNamespace:
     return SimpleNamespace(
         prob=prob, sel=np.flatnonzero(counts), args=args, size=(h, w)
     )
+
+
+def run_lane_solves(mod, setup: SimpleNamespace, sel: np.ndarray, on_solve):
+    """Solve the pixels `sel` of `setup` (:func:`fused_inputs`) through the kernel
+    module `mod`'s Python source around its compiled inner functions, calling
+    `on_solve(ql, qvl, fu)` with each four-lane system (Q, q, union envelope) just
+    before `_solve_lanes` solves it; slow, so for a sample of pixels. Returns the
+    kernel's `(x, kkt, steps)`; the module's functions are put back after."""
+    solve, group, assemble = mod._solve_lanes, mod._solve_group, mod._lane_assemble
+
+    def spy(ql, qvl, fu, *rest):
+        on_solve(ql, qvl, fu)
+        return solve(ql, qvl, fu, *rest)
+
+    mod._solve_lanes, mod._solve_group = spy, group.py_func
+    mod._lane_assemble = assemble.py_func
+    try:
+        m = setup.prob.channels
+        args = _fused.kernel_inputs(setup.prob, *setup.args)
+        x, kkt = np.empty((sel.size, m)), np.empty(sel.size)
+        steps = np.empty(sel.size, np.int64)
+        mod.solve_pixels.py_func(sel, *args, x, kkt, steps)
+    finally:
+        mod._solve_lanes, mod._solve_group, mod._lane_assemble = solve, group, assemble
+    return x, kkt, steps

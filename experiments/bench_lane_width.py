@@ -39,11 +39,10 @@ from pathlib import Path
 import numba
 import numpy as np
 from _common import OUT, matmul_gflops
-from _kernel_setup import fused_inputs
+from _kernel_setup import fused_inputs, run_lane_solves
 from bench_kernel_ab import kernel_source, load_kernel
 
 from evhsi_jax._base import njit
-from evhsi_jax._reconstruct import _fused
 
 
 def captured_systems(sensor: str, size: str, stride: int, pixels: int):
@@ -54,23 +53,12 @@ def captured_systems(sensor: str, size: str, stride: int, pixels: int):
     caps = []
     with tempfile.TemporaryDirectory() as tmp:
         sys.path.insert(0, tmp)
-        mod = load_kernel(kernel_source(None), "kernel_lane_width", Path(tmp))
-        solve = mod._solve_lanes
-
-        def spy(ql, qvl, fu, *rest):
-            caps.append((ql.copy(), qvl.copy(), fu.copy()))
-            return solve(ql, qvl, fu, *rest)
-
-        mod._solve_lanes = spy
-        mod._solve_group = mod._solve_group.py_func
-        mod._lane_assemble = mod._lane_assemble.py_func
-        m = setup.prob.channels
-        args = _fused.kernel_inputs(setup.prob, *setup.args)
-        x = np.empty((sel.size, m))
-        kkt, steps = np.empty(sel.size), np.empty(sel.size, np.int64)
-        mod.solve_pixels.py_func(sel, *args, x, kkt, steps)
-        mod._solve_lanes = solve
-        kernel = mod
+        kernel = load_kernel(kernel_source(None), "kernel_lane_width", Path(tmp))
+        run_lane_solves(
+            kernel, setup, sel,
+            lambda ql, qvl, fu: caps.append((ql.copy(), qvl.copy(), fu.copy())),
+        )  # fmt: skip
+    m = setup.prob.channels
     ql, qv, fu = (np.stack([c[i] for c in caps]) for i in range(3))
     return kernel, ql, qv, fu, m
 

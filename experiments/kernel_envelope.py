@@ -23,29 +23,17 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-from _kernel_setup import fused_inputs
+from _kernel_setup import fused_inputs, run_lane_solves
 from bench_kernel_ab import kernel_source, load_kernel, setup_args
-
-from evhsi_jax._reconstruct import _fused
 
 
 def envelope(mod, setup, sel):
     """Mean row width of the envelope and mean multiply-adds of the factorisation per
     lane solve, over the solves of the pixels `sel`."""
     widths = []
-    solve = mod._solve_lanes
-
-    def spy(ql, qvl, fu, *rest):
-        widths.append(np.arange(fu.size) - fu)
-        return solve(ql, qvl, fu, *rest)
-
-    mod._solve_lanes = spy
-    mod._solve_group = mod._solve_group.py_func
-    mod._lane_assemble = mod._lane_assemble.py_func
-    m = setup.prob.channels
-    args = _fused.kernel_inputs(setup.prob, *setup.args)
-    x, kkt, steps = np.empty((sel.size, m)), np.empty(sel.size), np.empty(sel.size, int)
-    mod.solve_pixels.py_func(sel, *args, x, kkt, steps)
+    run_lane_solves(
+        mod, setup, sel, lambda ql, qvl, fu: widths.append(np.arange(fu.size) - fu)
+    )  # fmt: skip
     w = np.array(widths)
     return {"solves": len(w), "mean_width": float(w.mean()),
             "max_width": int(w.max()),
