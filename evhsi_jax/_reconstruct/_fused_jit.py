@@ -764,7 +764,7 @@ def _lane_rows(rows, los, his, cs, ws, counts, nl, nrows, rl, sw, st, ql, qvl, f
                 fu[i] = s0
 
 
-@njit(inline=True)
+@njit
 @no_type_check
 def _hold_long_rows(nl, evlos, evhis, evxs, zzs, g_k, lng, lzz):
     """Take the group's long event rows (those marked in `evxs`, their reference in
@@ -788,14 +788,25 @@ def _hold_long_rows(nl, evlos, evhis, evxs, zzs, g_k, lng, lzz):
         lng[q, 0] = n
 
 
-@njit(inline=True)
+@njit
 @no_type_check
-def _restore_long_rows(nl, evhis, zzs, lng, lzz):
-    """The long rows' spans and weights back (:func:`_hold_long_rows`)."""
+def _restore_long_rows(nl, evhis, zzs, lng, lzz, evrs, evcs, evlos, qvl):
+    """The long rows' spans and weights back (:func:`_hold_long_rows`), and their
+    part of q added to the lanes' `qvl` (their part of Q is :func:`_lane_long_rows`'
+    business)."""
     for q in range(nl):
         for n in range(lng[q, 0]):
             evhis[q, lng[q, 1 + n]] = lng[q, 1 + LONG_ROWS + n]
             zzs[q, lng[q, 1 + n]] = lzz[q, n]
+    lanes = _lane_index(nl)
+    for lane in range(4):
+        q = lanes[lane]
+        for n in range(lng[q, 0]):
+            j = lng[q, 1 + n]
+            r = evrs[q, j]
+            f = lzz[q, n] * lzz[q, n] * evcs[q, j]
+            for i in range(evlos[q, j], lng[q, 1 + LONG_ROWS + n]):
+                qvl[4 * i + lane] += f * r[i]
 
 
 @njit(inline=True)
@@ -897,7 +908,7 @@ def _lane_long_rows(nl, todo, fail, lng, lzz, evrs, evlos, ptr, fu, lf, inv, xl,
             _lane_woodbury(q, lng, lzz, evrs, evlos, zl, xl, hw, m)
 
 
-@njit(inline=True)
+@njit
 @no_type_check
 def _add_long_rows(qm, first, q, lng, lzz, evrs, evlos):
     """Pixel `q`'s long rows into its own Q (lower triangle; its q holds them
@@ -1661,16 +1672,7 @@ def _lane_assemble(
         evrs, evlos, evhis, evcs, zzs, g_k, nl, nrows, rl, sw, st, ql, qvl, fu, m
     )  # fmt: skip
     if split:
-        _restore_long_rows(nl, evhis, zzs, lng, lzz)
-        lanes = _lane_index(nl)
-        for lane in range(4):
-            q = lanes[lane]
-            for n in range(lng[q, 0]):
-                j = lng[q, 1 + n]
-                r = evrs[q, j]
-                f = lzz[q, n] * lzz[q, n] * evcs[q, j]
-                for i in range(evlos[q, j], lng[q, 1 + LONG_ROWS + n]):
-                    qvl[4 * i + lane] += f * r[i]
+        _restore_long_rows(nl, evhis, zzs, lng, lzz, evrs, evcs, evlos, qvl)
     _lane_priors(
         ql, fu, spec, spec_first, g_spec_w, nl, par[P_RIDGE], par[P_SPEC_TRACE], m
     )
