@@ -130,7 +130,10 @@ class EventStream:
         return int(self.t_us[-1] - self.t_us[0]) if len(self) > 1 else 0
 
     def is_time_ordered(self) -> bool:
-        return bool(np.all(np.diff(self.t_us) >= 0))
+        """Whether the times never decrease (a comparison of neighbours: no array of
+        differences, 800 MB for the 100 M events of a 4-sweep 1280×720 recording)."""
+        t = self.t_us
+        return bool((t[1:] >= t[:-1]).all())
 
     def sorted_by_time(self) -> EventStream:
         """A copy in non-decreasing time order (stable: ties keep their order)."""

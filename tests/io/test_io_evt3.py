@@ -300,8 +300,18 @@ def test_writer_uses_vector_words_and_counts_agree(tmp_path):
 
 def test_writer_sorts_unordered_input(tmp_path):
     ev = mk([1, 2, 3], [0, 0, 0], [1, 1, 1], [30, 10, 20], 8, 8)
+    assert not ev.is_time_ordered()
     back = roundtrip(tmp_path, ev)
     assert_same(ev.sorted_by_time(), back)
+
+
+def test_time_order_check():
+    """Non-decreasing times (ties allowed) are ordered; one step back is not; an
+    empty or one-event stream is."""
+    assert mk([1, 2, 3], [0] * 3, [1] * 3, [10, 10, 20], 8, 8).is_time_ordered()
+    assert not mk([1, 2, 3], [0] * 3, [1] * 3, [10, 20, 19], 8, 8).is_time_ordered()
+    assert mk([], [], [], [], 8, 8).is_time_ordered()
+    assert mk([1], [0], [1], [5], 8, 8).is_time_ordered()
 
 
 @pytest.mark.parametrize(
