@@ -910,24 +910,19 @@ def _lane_long_rows(nl, todo, fail, lng, lzz, evrs, evlos, ptr, fu, lf, inv, xl,
 
 @njit
 @no_type_check
-def _add_long_rows(qm, first, q, lng, lzz, evrs, evlos):
-    """Pixel `q`'s long rows into its own Q (lower triangle; its q holds them
-    already: :func:`_lane_assemble`), when it leaves the lanes for the active set
-    with its whole system."""
+def _add_long_rows(qm, qv, first, q, lng, lzz, evrs, evlos):
+    """Pixel `q`'s long rows into its own Q (:func:`_acc_stored`; its q holds them
+    already, :func:`_lane_assemble`, so they add 0 · r to it), when it leaves the
+    lanes for the active set with its whole system."""
     for n in range(lng[q, 0]):
         j = lng[q, 1 + n]
-        r = evrs[q, j]
         lo = evlos[q, j]
-        s2 = lzz[q, n] * lzz[q, n]
-        for i in range(lo, lng[q, 1 + LONG_ROWS + n]):
-            ri = s2 * r[i]
+        hi = lng[q, 1 + LONG_ROWS + n]
+        for i in range(lo, hi):  # the envelope widens: entries not set by the lanes
             qi = qm[i]
-            if lo < first[i]:  # the envelope widens: those entries were not set
-                for c in range(_u(lo), _u(first[i])):
-                    qi[c] = 0.0
-                first[i] = lo
-            for c in range(_u(lo), _u(i + 1)):
-                qi[c] += ri * r[c]
+            for c in range(_u(lo), _u(first[i])):
+                qi[c] = 0.0
+        _acc_stored(qm, qv, first, evrs[q, j], 0.0, lo, hi, lzz[q, n] * lzz[q, n])
 
 
 @njit
@@ -1553,7 +1548,7 @@ def _write_lanes(
 ):  # fmt: skip
     """:func:`_write_answer` of the group's pixels `r0 + l`, their systems in the lane
     layout (the gradients of the four side by side) plus their long rows (`lng`, `lzz`,
-    :func:`_lane_assemble`; none without `split`). `dg` (M) is work space."""
+    :func:`_hold_long_rows`; none without them). `dg` (M) is work space."""
     m = xs.shape[1]
     lanes = _lane_index(nl)
     for lane in range(4):
@@ -1585,7 +1580,6 @@ def _write_lanes(
         qmax = 0.0
         for i in range(m):
             qmax = max(qmax, abs(dg[i]))
-        x = xs[lane]
         kkt = 0.0
         for i in range(m):
             g = gl[4 * i + lane]
@@ -1599,7 +1593,7 @@ def _write_lanes(
 @no_type_check
 def _solve_group(
     nl, todo, qms, qvs, firsts, xs, steps, ql, qvl, fu, ptr, lfl, invl, xl, fail,
-    free, lf, inv, p, gr, par, max_iters, split, lng, lzz, evrs, evlos, lw,
+    free, lf, inv, p, gr, par, max_iters, lng, lzz, evrs, evlos, lw,
 ):  # fmt: skip
     """The box QPs of the group's pixels marked in `todo`, answers into `xs`, steps
     into `steps` (−1: a factorisation failed). One pixel (`qms`, `qvs`, `firsts`):
@@ -1608,8 +1602,9 @@ def _solve_group(
     minimiser has a negative channel goes on from it with :func:`_box_qp`'s
     active-set steps on its own system, taken out of the lane layout, and a pixel
     whose lane factorisation failed runs `_box_qp` from the start, as the one-pixel
-    path does. With `split`, the lanes' Q leaves out the pixels' long rows, added by
-    :func:`_lane_long_rows` (and into a pixel's own Q when it leaves the lanes)."""
+    path does. The lanes' Q leaves out the pixels' long rows listed in `lng`
+    (:func:`_hold_long_rows`; none without them), added by :func:`_lane_long_rows`
+    (and into a pixel's own Q when it leaves the lanes)."""
     m = qvs.shape[1]
     tol = par[P_TOL]
     if qms.shape[0] == 1:
@@ -1622,10 +1617,7 @@ def _solve_group(
             )  # fmt: skip
         return
     _solve_lanes(ql, qvl, fu, ptr, lfl, invl, xl, fail, m)
-    if split:
-        _lane_long_rows(
-            nl, todo, fail, lng, lzz, evrs, evlos, ptr, fu, lfl, invl, xl, lw, m
-        )  # fmt: skip
+    _lane_long_rows(nl, todo, fail, lng, lzz, evrs, evlos, ptr, fu, lfl, invl, xl, lw, m)
     for lane in range(nl):
         if not todo[lane]:
             continue
@@ -1638,8 +1630,9 @@ def _solve_group(
                 neg = True
         if neg or fail[lane]:
             _lane_unpack(ql, qvl, fu, lane, qms[lane], qvs[lane], firsts[lane], m)
-            if split:  # (its q already holds the long rows' part)
-                _add_long_rows(qms[lane], firsts[lane], lane, lng, lzz, evrs, evlos)
+            _add_long_rows(
+                qms[lane], qvs[lane], firsts[lane], lane, lng, lzz, evrs, evlos
+            )  # fmt: skip
             steps[lane] = _box_qp(
                 qms[lane], qvs[lane], firsts[lane], free, lf, inv, x, p, gr, tol,
                 max_iters, not fail[lane],
@@ -2066,7 +2059,7 @@ def solve_pixels(
             todo[lane] = lane < nl
         _solve_group(
             nl, todo, qms, qvs, firsts, xs, g_steps, ql, qvl, fu, ptr, lfl, invl, xl,
-            fail, free, lf, inv, p, gr, par, max_iters, split, lng, lzz, evrs, evlos,
+            fail, free, lf, inv, p, gr, par, max_iters, lng, lzz, evrs, evlos,
             lw,
         )  # fmt: skip
         # The photoreceptor model linearised at the answer replaces the delay-shifted
@@ -2127,7 +2120,7 @@ def solve_pixels(
                 )  # fmt: skip
             _solve_group(
                 nl, todo, qms, qvs, firsts, xs, g_steps, ql, qvl, fu, ptr, lfl, invl,
-                xl, fail, free, lf, inv, p, gr, par, max_iters, split, lng, lzz, evrs,
+                xl, fail, free, lf, inv, p, gr, par, max_iters, lng, lzz, evrs,
                 evlos, lw,
             )  # fmt: skip
         # Robust reweighting: rows far outside their noise count linearly (Huber)
@@ -2188,7 +2181,7 @@ def solve_pixels(
                 )  # fmt: skip
             _solve_group(
                 nl, todo, qms, qvs, firsts, xs, g_steps, ql, qvl, fu, ptr, lfl, invl,
-                xl, fail, free, lf, inv, p, gr, par, max_iters, split, lng, lzz, evrs,
+                xl, fail, free, lf, inv, p, gr, par, max_iters, lng, lzz, evrs,
                 evlos, lw,
             )  # fmt: skip
         if lanes:

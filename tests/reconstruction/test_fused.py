@@ -9,12 +9,12 @@ import pytest
 import evhsi_jax as ev
 from evhsi_jax._base._numba import numba_available, readonly
 from evhsi_jax._reconstruct import (
-    TIMESTAMP_CENTRE_US,
     ProblemConfig,
     _fused,
     _pipeline,
     _pixels,
 )
+from evhsi_jax._video._stream import _ReferenceCarry
 
 pytestmark = pytest.mark.skipif(not numba_available(), reason="numba is not available")
 
@@ -181,12 +181,10 @@ def test_long_rows_by_woodbury_give_the_same_optimum(noisy):
         second = events.take(np.flatnonzero((t >= t0) & (t < 2 * t0)))
         kept, _, _ = _pipeline.screen_events(second, rig, t0, noise, 1, None)
         counts, starts, t_rel, sgn = _pixels.pixel_lists(kept, t0)
-        first = events.take(np.flatnonzero(t < t0))
-        pix = np.asarray(first.y, np.int64) * w + np.asarray(first.x)
-        last = np.full(h * w, -1, np.int64)
-        np.maximum.at(last, pix, np.asarray(first.t_us))
-        ref = np.where(last >= 0, last + TIMESTAMP_CENTRE_US + rig.refractory_us, np.nan)
-        lead = _pipeline._reference_lead_us(ref.reshape(h, w), t0, period, h, w)
+        carry = _ReferenceCarry(h, w, float(rig.refractory_us))
+        carry.add(events.take(np.flatnonzero(t < t0)))
+        ref = carry.reference_us()
+        lead = _pipeline._reference_lead_us(ref, t0, period, h, w)
         assert np.count_nonzero(lead) > h * w // 2
         sel = np.flatnonzero(counts)
         args = (starts, counts, t_rel, sgn, lead, info.threshold_on.reshape(-1),
