@@ -2,7 +2,7 @@
 
 With a photoreceptor low-pass in the noise model, the reconstruction solves once with
 delay-shifted events, then replaces each event row by the low-passed sensor model
-linearised at that answer (one Gauss–Newton pass, :func:`._problem._lowpass_rows`).
+linearised at that answer (Gauss–Newton passes, :func:`._problem._lowpass_rows`).
 JAX forms those rows by running the filter on the rig's whole time grid for every
 pixel at once: a `(pixels, grid, M+1)` array through an associative scan, ~1,200
 grid points per sweep — on an H100 most of the realistic sweep's time (experiments/
@@ -15,7 +15,9 @@ through memory:
 1. at each grid point the band's table row and fraction (the same linear lookup as
    :func:`evhsi_jax._model.lookup`, from the column's offset and the sweep's
    curvature), the intensity at the linearisation point (a warp sum), its logarithm,
-   the filter's decay, and the update of the thread's entries;
+   the filter's decay, and the update of the thread's entries (the Jacobian's
+   entries take the band with the log's slope plus the decay's part, which needs
+   the filtered log at the point before: every thread keeps that scalar);
 2. the event times and the releases after them (the two ends of each event's row)
    are two ascending streams of queries: when the walk passes a query's grid
    interval, the filtered state there (linear interpolation between grid points)
@@ -154,6 +156,10 @@ def make_lowpass_kernel(m: int, nt: int = THREADS, ppb: int = PIXELS_PER_BLOCK):
         kr = 0
         ie, fe = grid_pos(t_us[b, 0], t0, dt, g_last)
         ir, fr_ = grid_pos(float32(0.0), t0, dt, g_last)
+        # The filtered log, kept by every thread (entry 0's recursion, the same
+        # operations): the decay's part of the Jacobian needs it at the point before.
+        yl = float32(0.0)
+        dtw = dt / d_w
         for j in range(0, i_end + 2):  # grid points 0 … i_end + 1
             i0, fr, inside = band_at(j, t0, off, par, n_tab)
             part = float32(0.0)
@@ -171,11 +177,16 @@ def make_lowpass_kernel(m: int, nt: int = THREADS, ppb: int = PIXELS_PER_BLOCK):
             alpha = float32(0.0)
             if j > 0:
                 alpha = math.exp(-dt * inten / d_w)
+            # the band's weight in the Jacobian: log's slope and the decay's part
+            wg = (float32(1.0) - alpha) * inv - (yl - lg) * alpha * dtw
             for kk in range(nv):
                 s = t + kk * nt
-                v = lg if s == 0 else av[kk] * inv
                 fp[kk] = fv[kk]
-                fv[kk] = alpha * fv[kk] + (float32(1.0) - alpha) * v
+                if s == 0:
+                    fv[kk] = alpha * fv[kk] + (float32(1.0) - alpha) * lg
+                else:
+                    fv[kk] = alpha * fv[kk] + wg * av[kk]
+            yl = alpha * yl + (float32(1.0) - alpha) * lg
             if j == 0:
                 continue
             # Queries in the interval [j − 1, j] (or, were a stream out of order,

@@ -1287,8 +1287,10 @@ def _lowpass_rows(
     # Then the recursion: V over the band's span, and the queries.
     vlo = m  # channels V has touched: [vlo, vhi)
     vhi = 0
+    dtw = dt / d_w
     for j in range(g_end):
         alpha = lp_f[1, j]
+        y_prev = scale * vv[0]  # the filtered log at the point before
         if alpha < 1e-200:  # F forgets its past (below 1e-200 of it): restart
             for c in range(m + 1):
                 vv[c] = 0.0
@@ -1306,7 +1308,9 @@ def _lowpass_rows(
         hi = cspan[j % n, 1]
         if hi > lo:
             row = crow[j % n]
-            wl = wgt * lp_f[3, j]
+            # The band's weight in the Jacobian: log's slope and the decay's part
+            # (:func:`._problem._lowpass_rows`), in V's scale.
+            wl = wgt * lp_f[3, j] - (y_prev - lp_f[2, j]) * alpha * dtw / scale
             for c in range(_u(hi - lo)):
                 vv[_u(lo + 1) + c] += wl * row[c]
             vlo = min(vlo, lo)
@@ -1436,11 +1440,13 @@ def _lane_lowpass_rows(
     vlo = m
     vhi = 0
     jn = 0
+    dtw = dt / d_w
     jq = _next_query_point(todo, nl, ks, qi0s, orders, st)
     for j in range(g_end):
         for lane in range(4):
             alpha = lpl[1, 4 * j + lane]
             scale = st[lane]
+            y_prev = scale * vl[lane]
             if alpha < 1e-200:  # F forgets its past: restart
                 for c in range(m + 1):
                     vl[4 * c + lane] = 0.0
@@ -1454,8 +1460,9 @@ def _lane_lowpass_rows(
                 scale *= alpha
                 wgt = (1.0 - alpha) / scale
             st[lane] = scale
-            vl[lane] += wgt * lpl[2, 4 * j + lane]
-            st[4 + lane] = wgt * lpl[3, 4 * j + lane]
+            lg = lpl[2, 4 * j + lane]
+            vl[lane] += wgt * lg
+            st[4 + lane] = wgt * lpl[3, 4 * j + lane] - (y_prev - lg) * alpha * dtw / scale
         lo = cspan[jn, 0]
         hi = cspan[jn, 1]
         if hi > lo:

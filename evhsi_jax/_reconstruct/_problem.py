@@ -500,11 +500,17 @@ def _lowpass_rows(rig, a_at, x0, d_w, t_us, step, t0_phase_us, sweeps):
     The photoreceptor output obeys $y_j = α_j y_{j-1} + (1-α_j) L_j$ on the rig's time
     grid, $L = \log(a\cdot x + c')$, $α_j = \exp(-Δt\,I_j/d_w)$ (the simulator's
     model, :func:`evhsi_jax.forward.photoreceptor_lowpass`), and event k says
-    $y(τ_k) - y(ρ_k) = σ_k C$. With $α$ and $L$ linearised at $x_0$
-    ($L ≈ L_0 + g\cdot(x - x_0)$, $g = a/(a\cdot x_0 + c')$) the filter acts on
-    $[L_0, g]$, and row k is $[ΔF_g;\ ΔF_{L_0} - ΔF_g\cdot x_0 - σ_k C]$ with $ΔF$ the
-    filtered difference between $τ_k$ and $ρ_k$ (linear interpolation between grid
-    points, as the simulator's crossings).
+    $y(τ_k) - y(ρ_k) = σ_k C$. Linearised at $x_0$ (a Gauss–Newton step): $y$ at
+    $x_0$ is the filtered $L_0$, and its Jacobian $J_j = ∂y_j/∂x$ obeys
+    $J_j = α_j J_{j-1} + w_j a_j$ with
+    $w_j = (1-α_j)/I'_j - (y_{j-1} - L_j)\,α_j Δt/d_w$ ($I' = I + ε$): the first
+    term is $L$'s own slope, the second the decay's (a brighter pixel's filter is
+    faster), which a fixed decay leaves out — without it each pass converged only
+    linearly (a 3 kHz photoreceptor needed ~6 passes instead of 2,
+    `experiments/photoreceptor_pass.py`). Row k is
+    $[ΔJ;\ ΔF_{L_0} - ΔJ\cdot x_0 - σ_k C]$ with $Δ$ the difference between $τ_k$
+    and $ρ_k$ (linear interpolation between grid points, as the simulator's
+    crossings).
     """
     dtype = x0.dtype
     n = rig.samples_per_sweep
@@ -515,15 +521,22 @@ def _lowpass_rows(rig, a_at, x0, d_w, t_us, step, t0_phase_us, sweeps):
     ag = a_at(tg)
     inten = jnp.maximum(ag @ x0 + rig.baseline_rel, 0.0)
     lev = inten + rig.log_eps
-    stack = jnp.concatenate([jnp.log(lev)[:, None], ag / lev[:, None]], axis=1)
-    alpha = jnp.exp(-dt * inten / jnp.maximum(d_w, 1e-6)).at[0].set(0.0)
+    log_lev = jnp.log(lev)
+    dtw = dt / jnp.maximum(d_w, 1e-6)
+    alpha = jnp.exp(-dtw * inten).at[0].set(0.0)
+
+    def combine1(left, right):
+        return left[0] * right[0], right[0] * left[1] + right[1]
 
     def combine(left, right):
         return left[0] * right[0], right[0][:, None] * left[1] + right[1]
 
-    _, filt = jax.lax.associative_scan(
-        combine, (alpha, (1.0 - alpha)[:, None] * stack), axis=0
-    )
+    # y at x0 first: the decay's part of the Jacobian needs y at the point before.
+    _, y = jax.lax.associative_scan(combine1, (alpha, (1.0 - alpha) * log_lev))
+    y_prev = jnp.concatenate([jnp.zeros((1,), dtype), y[:-1]])
+    w = (1.0 - alpha) / lev - (y_prev - log_lev) * alpha * dtw
+    _, jac = jax.lax.associative_scan(combine, (alpha, w[:, None] * ag), axis=0)
+    filt = jnp.concatenate([y[:, None], jac], axis=1)
 
     def at(t):
         pos = jnp.clip((t + t0_phase_us) / dt, 0.0, g_n - 1.0)

@@ -294,3 +294,41 @@ def test_linearised_lowpass_rows_explain_a_lowpassed_capture():
     shift_rms = np.sqrt(np.mean(np.concatenate(res_shift) ** 2))
     assert lin_rms < 0.01  # well below one threshold (0.15)
     assert lin_rms < 0.5 * shift_rms
+
+
+def test_lowpass_rows_are_the_filters_jacobian():
+    """The photoreceptor rows linearise the filtered log-intensity at x0 to first
+    order, decay included (a brighter pixel's filter is faster): their x-part is the
+    Jacobian of the row's own constant part, differentiated by JAX through the whole
+    nonlinear filter. A decay held fixed at x0 (the rows of before 2026-11-27) missed
+    the decay's part by far more than this tolerance; Gauss–Newton then converged
+    only linearly."""
+    import jax
+
+    from evhsi_jax._reconstruct._problem import _lowpass_rows
+
+    with jax.enable_x64(True):
+        rig = ev.Rig(photoreceptor_hz=3000.0).astype(np.float64)
+        m = rig.channels
+        period = float(rig.period_us)
+        rng = np.random.default_rng(3)
+        centres = jnp.linspace(0.1 * period, 0.9 * period, m)
+
+        def a_at(t):  # smooth bands sweeping the channels, some overlapping
+            return 0.6 * jnp.exp(-0.5 * ((t[:, None] - centres) / (0.01 * period)) ** 2)
+
+        x0 = jnp.asarray(rng.uniform(0.05, 0.9, m))
+        k = 14
+        t_us = jnp.asarray(np.sort(rng.uniform(0.15, 0.85, k)) * period)
+        step = jnp.asarray(rng.choice([-0.15, 0.15], k))
+        d_w = 1e6 / (2 * np.pi * 3000.0)
+
+        def level_steps(x):  # Δy_k(x) − σ_k C, the filter's value at x
+            r = _lowpass_rows(rig, a_at, x, d_w, t_us, step, 0.0, 1)
+            return r[:, :m] @ x + r[:, m]
+
+        jac = np.asarray(jax.jacfwd(level_steps)(x0))
+        rows = np.asarray(_lowpass_rows(rig, a_at, x0, d_w, t_us, step, 0.0, 1))
+    scale = np.abs(jac).max()
+    assert scale > 0
+    np.testing.assert_allclose(rows[:, :m], jac, rtol=0, atol=1e-9 * scale)
