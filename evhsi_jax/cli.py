@@ -217,6 +217,7 @@ def cmd_info(args):
 
 
 def cmd_reconstruct(args):
+    _problem_config(args)  # its options checked before any work
     if args.per_sweep:
         return _reconstruct_per_sweep(args)
     if args.max_sweeps is not None or args.restart or args.follow:
@@ -246,6 +247,7 @@ def cmd_reconstruct(args):
         events,
         cal,
         solver=args.solver,
+        config=_problem_config(args),
         t_start_us=args.t_start_us,
         progress=not args.quiet,
         return_info=True,
@@ -347,6 +349,20 @@ def _mesh(devices):
 _DEBLUR = {"auto": None, "on": True, "off": False}
 
 
+def _problem_config(args):
+    """The per-pixel problem's settings that `reconstruct` options change (None:
+    the defaults)."""
+    if args.photoreceptor_passes is None:
+        return None
+    if not 0 <= args.photoreceptor_passes <= 16:
+        raise ValueError(
+            f"--photoreceptor-passes must be in [0, 16], got {args.photoreceptor_passes}"
+        )
+    from ._reconstruct import ProblemConfig
+
+    return ProblemConfig(lowpass_passes=args.photoreceptor_passes)
+
+
 def _run_sweeps(args, cal, out, roi, stop):
     from ._video import reconstruct_sweeps
 
@@ -355,6 +371,7 @@ def _run_sweeps(args, cal, out, roi, stop):
         cal,
         out,
         solver=args.solver,
+        config=_problem_config(args),
         max_sweeps=args.max_sweeps,
         low_event_rel=args.low_events,
         # Per sweep, one device unless asked: each sweep is small and latency counts
@@ -866,6 +883,16 @@ def build_parser() -> argparse.ArgumentParser:
         help="undo the optics' blur (the calibration's psf_sigma_px, pixels) by "
         "Wiener deconvolution per channel: auto (default) when the calibration "
         "measured one, on, off",
+    )
+    p.add_argument(
+        "--photoreceptor-passes",
+        type=int,
+        default=None,
+        metavar="N",
+        help="Gauss-Newton passes of the photoreceptor model when the calibration "
+        "has a photoreceptor cut-off (default 1; 0: the delay shift alone): a "
+        "second pass costs ~1.5x the time and gains most where the cut-off is low "
+        "(README, Real sensors)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_strict(p)

@@ -57,3 +57,32 @@ def test_calibrating_a_scene_that_is_not_the_chart_fails(realistic_files):
     chart = ev.load_scene("gray-chart", (events.height, events.width))
     with pytest.raises(ValueError, match="does not fit its data"):
         ev.calibrate(events, chart, ev.Rig(), max_steps=12)
+
+
+def test_photoreceptor_passes_option(realistic_files, tmp_path, capsys):
+    """`reconstruct --photoreceptor-passes N` solves with N Gauss–Newton passes of the
+    photoreceptor model (the Python API's `ProblemConfig(lowpass_passes=N)`, the
+    same cube); a value out of range is one line and exit 2, before any work."""
+    from evhsi_jax.reconstruction import ProblemConfig
+
+    d = realistic_files
+    events = ev.read_events(d / "cc.npz")
+    cal = ev.load_calibration(d / "rig.json")  # the preset: a 10 kHz photoreceptor
+    cubes = []
+    for n in (0, 2):
+        out = tmp_path / f"c{n}.npz"
+        assert main(["reconstruct", str(d / "cc.npz"), "--calib", str(d / "rig.json"),
+                     "--out", str(out), "--photoreceptor-passes", str(n),
+                     "--quiet"]) == 0  # fmt: skip
+        cube = np.load(out)["cube"]
+        ref = ev.reconstruct(events, cal, config=ProblemConfig(lowpass_passes=n))
+        np.testing.assert_array_equal(cube, ref)
+        cubes.append(cube)
+    assert not np.array_equal(cubes[0], cubes[1])  # the passes ran
+    capsys.readouterr()
+    code = main(["reconstruct", str(d / "cc.npz"), "--calib", str(d / "rig.json"),
+                 "--out", str(tmp_path / "bad.npz"), "--photoreceptor-passes", "-1"])
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert "--photoreceptor-passes must be in [0, 16]" in err
+    assert not (tmp_path / "bad.npz").exists()
