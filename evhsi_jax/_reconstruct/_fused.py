@@ -123,9 +123,9 @@ class FusedProblem:
         ]  # fmt: skip
         # The noise model [σ_C, σ_t, d_w] and the reweighting's settings.
         nz = np.zeros(3) if noise is None else np.asarray(noise, np.float64)
-        par[19:28] = [
+        par[19:29] = [
             nz[0], nz[1], nz[2], cfg.noise_floor, cfg.alpha_dark, cfg.robust_c,
-            cfg.robust_reject, f(rig.baseline_rel), f(rig.log_eps),
+            cfg.robust_reject, f(rig.baseline_rel), f(rig.log_eps), cfg.lowpass_tol,
         ]  # fmt: skip
         self.par = par
         # The photoreceptor rows run (as the kernel decides, `lowpass`): the kernel

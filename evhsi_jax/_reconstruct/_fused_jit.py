@@ -56,8 +56,8 @@ P_BASE, P_ETA, P_PERIOD, P_SPEED, P_START, P_CURV, P_MID, P_HALF = range(8)
 P_ARRIVE, P_LEAVE, P_TAU0, P_AINT, P_ASPEC, P_RIDGE, P_PEAK, P_TOL = range(8, 16)
 P_SPEC_TRACE, P_TAB_LO, P_INV_STEP = range(16, 19)
 P_SIG_C, P_SIG_T, P_DW, P_FLOOR, P_ADARK, P_RC, P_REJECT = range(19, 26)
-P_BASE_REL, P_LOG_EPS = range(26, 28)
-N_PAR = 28
+P_BASE_REL, P_LOG_EPS, P_LP_TOL = range(26, 29)
+N_PAR = 29
 I_SWEEPS, I_POINTS, I_TARGET, I_NORM, I_RELEASE, I_ITERS, I_NOISE, I_ROBUST = range(8)
 I_LOWPASS, I_SAMPLES, I_LANES, I_LONG = range(8, 12)
 #: Pixels whose factorisations run side by side, one per SIMD lane (float64 × 4:
@@ -1763,6 +1763,8 @@ def solve_pixels(
     qvs = np.zeros((group, m))
     firsts = np.zeros((group, m), np.int64)
     xs = np.zeros((group, m))
+    xprev = np.zeros((group, m))  # each pixel's answer before a Gauss–Newton pass
+    lp_more = np.zeros(group, np.bool_)  # its last pass moved it by > lowpass_tol
     g_steps = np.zeros(group, np.int64)
     todo = np.zeros(group, np.bool_)
     g_k = np.zeros(group, np.int64)
@@ -2070,16 +2072,21 @@ def solve_pixels(
             lw,
         )  # fmt: skip
         # The photoreceptor model linearised at the answer replaces the delay-shifted
-        # event rows (Gauss–Newton passes).
-        for _ in range(lp_passes):
+        # event rows (Gauss–Newton passes: the first for every pixel, another while
+        # the pixel's last pass moved it by more than lowpass_tol).
+        for lp_pass in range(lp_passes):
             col = np.nan  # the group's column offset, if all its pixels share one
+            any_todo = False
             for lane in range(nl):
-                todo[lane] = g_steps[lane] >= 0
+                todo[lane] = g_steps[lane] >= 0 and (lp_pass == 0 or lp_more[lane])
                 if todo[lane]:
+                    any_todo = True
                     if col != col:
                         col = g_off[lane]
                     elif g_off[lane] != col:
                         col = np.inf
+            if not any_todo:
+                break
             side = lane_lp and math.isfinite(col)  # four lanes side by side
             if side:
                 if not col == col_done:
@@ -2125,11 +2132,27 @@ def solve_pixels(
                     g_k, rl, sw, rw, spec, spec_first, g_spec_w, par, split, evxs,
                     lng, lzz,
                 )  # fmt: skip
+            for lane in range(nl):
+                for i in range(m):
+                    xprev[lane, i] = xs[lane, i]
             _solve_group(
                 nl, todo, qms, qvs, firsts, xs, g_steps, ql, qvl, fu, ptr, lfl, invl,
                 xl, fail, free, lf, inv, p, gr, par, max_iters, lng, lzz, evrs,
                 evlos, lw,
             )  # fmt: skip
+            # How far the pass moved each pixel: another pass where it moved by more
+            # than lowpass_tol (||Δx||² > tol² ||x||², as _pipeline's JAX passes).
+            for lane in range(nl):
+                dx2 = 0.0
+                x2 = 0.0
+                for i in range(m):
+                    d = xs[lane, i] - xprev[lane, i]
+                    dx2 += d * d
+                    x2 += xs[lane, i] * xs[lane, i]
+                lp_more[lane] = (
+                    todo[lane] and g_steps[lane] >= 0
+                    and dx2 > par[P_LP_TOL] * par[P_LP_TOL] * x2
+                )  # fmt: skip
         # Robust reweighting: rows far outside their noise count linearly (Huber)
         # or not at all; a pixel stops when none is far out.
         for lane in range(nl):

@@ -238,6 +238,20 @@ def _no_event_answer(rig: Rig, m: int) -> float:
 MATMUL_PRECISION = "highest"
 
 
+def _keep_moved(cfg: ProblemConfig, more, old, new):
+    """One Gauss–Newton pass of the photoreceptor model for the pixels in `more`
+    (`(B,)` bool): `(rows, x, kkt)` from `new` where `more`, else from `old`, and
+    the pixels to take the next pass — those this pass moved by more than
+    `cfg.lowpass_tol` (as the fused kernel: ‖Δx‖² > tol² ‖x‖²)."""
+    pick = lambda a, b: jnp.where(  # noqa: E731
+        more.reshape(more.shape + (1,) * (jnp.ndim(a) - 1)), b, a
+    )
+    rows, x, kkt = jax.tree.map(pick, old, new)
+    d = new[1] - old[1]
+    moved = jnp.sum(d * d, axis=-1) > cfg.lowpass_tol**2 * jnp.sum(new[1] ** 2, axis=-1)
+    return rows, x, kkt, more & moved
+
+
 @eqx.filter_jit
 def _solve_chunk(
     rig,
@@ -269,15 +283,20 @@ def _solve_chunk(
         rows = _batch_rows(rig, table, cfg, args, sweeps, noise)
         q_mat, q_vec, _ = jax.vmap(lambda r: system_from_rows(cfg, r))(rows)
         x, kkt = solve_qp(q_mat, q_vec)
+        more = jnp.ones(x.shape[0], bool)  # the pixels that take the next pass
         for _ in range(cfg.lowpass_passes if sweeps <= 4 else 0):
-            # A photoreceptor low-pass: relinearise its model at the current answer.
-            def relinearise(rows=rows, x=x):
+            # A photoreceptor low-pass: relinearise its model at the current answer
+            # (a pixel whose last pass moved it by ≤ lowpass_tol keeps its answer).
+            def relinearise(rows=rows, x=x, kkt=kkt, more=more):
                 new = _batch_rows(rig, table, cfg, args, sweeps, noise, x)
                 qm, qv, _ = jax.vmap(lambda r: system_from_rows(cfg, r))(new)
-                return (new, *solve_qp(qm, qv))
+                x_new, kkt_new = solve_qp(qm, qv)
+                return _keep_moved(cfg, more, (rows, x, kkt), (new, x_new, kkt_new))
 
-            rows, x, kkt = jax.lax.cond(
-                noise[2] > 0, relinearise, lambda r=rows, x=x, k=kkt: (r, x, k)
+            rows, x, kkt, more = jax.lax.cond(
+                (noise[2] > 0) & jnp.any(more),
+                relinearise,
+                lambda r=rows, x=x, k=kkt: (r, x, k, jnp.zeros_like(more)),
             )
         for _ in range(cfg.robust_steps):
             u, any_big = _huber_weights(cfg, rows, args.mask, x)
@@ -392,13 +411,18 @@ def _solve_chunk_cuda(rig, table, cfg, spec, sub, px, sweeps, noise=None, first=
     if noise is None:
         return x, kkt
     if sweeps <= 4 and float(noise[2]) > 0:
+        more = jnp.ones(x.shape[0], bool)  # the pixels that take the next pass
         for _ in range(cfg.lowpass_passes):
             if cfg.lookup_order == 1:  # the photoreceptor rows by a kernel too
-                rows = rows._replace(events=_lowpass_rows_cuda(rig, table, noise,
-                                                               sweeps, px, n, rows, x))
+                new = rows._replace(events=_lowpass_rows_cuda(rig, table, noise,
+                                                              sweeps, px, n, rows, x))
             else:
-                rows, n = _chunk_rows(rig, table, cfg, px, sweeps, noise, x)
-            x, kkt = solve(rows, n)
+                new, n = _chunk_rows(rig, table, cfg, px, sweeps, noise, x)
+            rows, x, kkt, more = _keep_moved(
+                cfg, more, (rows, x, kkt), (new, *solve(new, n))
+            )
+            if not bool(jnp.any(more)):
+                break
     for _ in range(cfg.robust_steps):
         u, any_big = _chunk_huber(cfg, rows, px.mask, x)
         if bool(any_big):

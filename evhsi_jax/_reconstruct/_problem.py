@@ -115,10 +115,22 @@ class ProblemConfig:
       evaluation scenes.
     - `robust_steps`: reweighting passes (Huber weights on the event rows) after the
       first solve when a noise model is given; 0 turns the robust loss off.
-    - `lowpass_passes`: Gauss–Newton passes of the linearised photoreceptor model
-      (`x0` of :func:`pixel_system`) after the first, delay-shifted solve, when the
-      noise model has a low-pass and the recording spans ≤ 4 sweeps (the model's
-      time grid grows with the sweeps); 0: the delay shift alone.
+    - `lowpass_passes`: at most this many Gauss–Newton passes of the linearised
+      photoreceptor model (`x0` of :func:`pixel_system`) after the first,
+      delay-shifted solve, when the noise model has a low-pass and the recording
+      spans ≤ 4 sweeps (the model's time grid grows with the sweeps); 0: the delay
+      shift alone. The first pass always runs; a pixel takes another only while its
+      last pass moved it by more than `lowpass_tol` (`evhsi reconstruct
+      --photoreceptor-passes`).
+    - `lowpass_tol`: a pixel's Gauss–Newton passes stop once a pass changed its
+      spectrum by at most this fraction, ‖x_k − x_{k−1}‖₂ ≤ `lowpass_tol` ‖x_k‖₂
+      (0: always `lowpass_passes`). The step
+      after a small one is smaller still (the rows carry the model's Jacobian), so
+      what it would change is left out. Four pixels share a pass on the fused
+      backend (its lanes), so a pixel's second pass costs its group nearly as much
+      as four: 0.2 lets ~1 pixel in 100 of the `realistic` preset (10 kHz) take one,
+      most pixels of a slow (3 kHz) or quiet photoreceptor (README, Real sensors,
+      "The photoreceptor pass").
     - `robust_c`: Huber threshold in standard deviations of a row.
     - `robust_reject`: beyond this many standard deviations a row is dropped (weight
       0) instead of down-weighted: a background event inside the lit interval is not
@@ -143,7 +155,8 @@ class ProblemConfig:
     noise_floor: float = 3e-4
     alpha_dark: float = 1e-6
     robust_steps: int = 2
-    lowpass_passes: int = 1
+    lowpass_passes: int = 3
+    lowpass_tol: float = 0.2
     robust_c: float = 4.0
     robust_reject: float = 12.0
     max_reflectance: float = 1.5
@@ -169,6 +182,8 @@ class ProblemConfig:
             raise ValueError("robust_reject must be > robust_c")
         if not self.max_reflectance > 0:
             raise ValueError("max_reflectance must be > 0")
+        if self.lowpass_passes < 0 or not self.lowpass_tol >= 0:
+            raise ValueError("lowpass_passes and lowpass_tol must be >= 0")
 
 
 def spectral_prior_matrix(m: int, m_start_frac: float, kind: str = "dct") -> np.ndarray:
