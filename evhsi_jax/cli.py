@@ -889,9 +889,10 @@ def build_parser() -> argparse.ArgumentParser:
         type=int,
         default=None,
         metavar="N",
-        help="Gauss-Newton passes of the photoreceptor model when the calibration "
-        "has a photoreceptor cut-off (default 1; 0: the delay shift alone): a "
-        "second pass costs ~1.5x the time and gains most where the cut-off is low "
+        help="at most N Gauss-Newton passes of the photoreceptor model when the "
+        "calibration has a photoreceptor cut-off (default 3; 0: the delay shift "
+        "alone); a pixel stops once a pass changed its spectrum by <= 20%%, so a "
+        "fast photoreceptor costs about one pass and a slow one takes more "
         "(README, Real sensors)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
