@@ -217,7 +217,7 @@ def cmd_info(args):
 
 
 def cmd_reconstruct(args):
-    _problem_config(args)  # its options checked before any work
+    config = _problem_config(args)  # its options checked before any work
     if args.per_sweep:
         return _reconstruct_per_sweep(args)
     if args.max_sweeps is not None or args.restart or args.follow:
@@ -247,7 +247,7 @@ def cmd_reconstruct(args):
         events,
         cal,
         solver=args.solver,
-        config=_problem_config(args),
+        config=config,
         t_start_us=args.t_start_us,
         progress=not args.quiet,
         return_info=True,
@@ -766,7 +766,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_strict(p)
     p.set_defaults(func=cmd_info)
 
-    from ._reconstruct import SOLVERS
+    from ._reconstruct import SOLVERS, ProblemConfig
 
     p = sub.add_parser(
         "reconstruct",
@@ -884,16 +884,17 @@ def build_parser() -> argparse.ArgumentParser:
         "Wiener deconvolution per channel: auto (default) when the calibration "
         "measured one, on, off",
     )
+    pc = ProblemConfig()
     p.add_argument(
         "--photoreceptor-passes",
         type=int,
         default=None,
         metavar="N",
         help="at most N Gauss-Newton passes of the photoreceptor model when the "
-        "calibration has a photoreceptor cut-off (default 3; 0: the delay shift "
-        "alone); a pixel stops once a pass changed its spectrum by <= 20%%, so a "
-        "fast photoreceptor costs about one pass and a slow one takes more "
-        "(README, Real sensors)",
+        f"calibration has a photoreceptor cut-off (default {pc.lowpass_passes}; 0: "
+        "the delay shift alone); a pixel stops once a pass changed its spectrum by "
+        f"<= {pc.lowpass_tol * 100:g}%%, so a fast photoreceptor costs about one pass and a "
+        "slow one takes more (README, Real sensors)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_strict(p)

@@ -540,18 +540,17 @@ def _lowpass_rows(rig, a_at, x0, d_w, t_us, step, t0_phase_us, sweeps):
     dtw = dt / jnp.maximum(d_w, 1e-6)
     alpha = jnp.exp(-dtw * inten).at[0].set(0.0)
 
-    def combine1(left, right):
-        return left[0] * right[0], right[0] * left[1] + right[1]
+    def filtered(inputs):  # the filter's recursion over the grid, per column
+        def combine(left, right):
+            return left[0] * right[0], right[0][:, None] * left[1] + right[1]
 
-    def combine(left, right):
-        return left[0] * right[0], right[0][:, None] * left[1] + right[1]
+        return jax.lax.associative_scan(combine, (alpha, inputs), axis=0)[1]
 
     # y at x0 first: the decay's part of the Jacobian needs y at the point before.
-    _, y = jax.lax.associative_scan(combine1, (alpha, (1.0 - alpha) * log_lev))
-    y_prev = jnp.concatenate([jnp.zeros((1,), dtype), y[:-1]])
+    y = filtered(((1.0 - alpha) * log_lev)[:, None])
+    y_prev = jnp.concatenate([jnp.zeros((1, 1), dtype), y[:-1]])[:, 0]
     w = (1.0 - alpha) / lev - (y_prev - log_lev) * alpha * dtw
-    _, jac = jax.lax.associative_scan(combine, (alpha, w[:, None] * ag), axis=0)
-    filt = jnp.concatenate([y[:, None], jac], axis=1)
+    filt = jnp.concatenate([y, filtered(w[:, None] * ag)], axis=1)
 
     def at(t):
         pos = jnp.clip((t + t0_phase_us) / dt, 0.0, g_n - 1.0)
