@@ -1173,49 +1173,49 @@ def _lowpass_point_terms(a, n, first, dt, d_w, log_eps):
 
 @njit(inline=True)
 @no_type_check
-def _lowpass_queries(tr, k, phase, dt, g_n, eta, fq, qpos, qi0, order):
-    """The queries of :func:`_lowpass_rows`: 2i at event i's time, 2i + 1 at its
-    reference, as positions `qpos` on the grid, their grid points `qi0`, their
-    `order` in time; their rows of `fq` zeroed. Returns the grid points F is needed
-    on (up to the last query's grid point + 1)."""
-    nq = 2 * k
-    for i in range(k):
-        t_ref = 0.0 if i == 0 else tr[i - 1] + eta
-        for h, t in ((0, tr[i]), (1, t_ref)):
-            pos = min(max((t + phase) / dt, 0.0), g_n - 1.0)
-            qpos[2 * i + h] = pos
+def _lowpass_queries(tr, k, phase, dt, g_n, eta, fq, lane, qh, apps, a_w, n_app):
+    """The queries of :func:`_lowpass_rows` of one pixel (`lane` of its group): 2i
+    at event i's time, 2i + 1 at its reference; their rows of `fq` zeroed. A query
+    at grid position p = j + f (j = ⌊p⌋) takes (1 - f) F_j + f F_{j+1}: two
+    applications, each put into the list of its grid point (`qh[j]`: the point's
+    last application, -1 for none; `apps[a]`: the application before it in that
+    list, then its lane and query; `a_w[a]`: its weight, 1 - f or f), numbered
+    from `n_app` on. A row's two shares go to different points, so the order within
+    a point does not change a bit. Returns the grid points F is needed on (up to
+    the last query's point + 1) and the new count of applications."""
     g_end = 1
-    for q in range(nq):
-        qi0[q] = min(np.int64(math.floor(qpos[q])), g_n - 2)
+    for q in range(2 * k):
+        i = q // 2
+        if q % 2 == 0:
+            t = tr[i]
+        else:
+            t = 0.0 if i == 0 else tr[i - 1] + eta
+        pos = min(max((t + phase) / dt, 0.0), g_n - 1.0)
+        j = min(np.int64(math.floor(pos)), g_n - 2)
         fq[q, :] = 0.0
-        g_end = max(g_end, qi0[q] + 2)
-    srt = np.argsort(qpos[:nq], kind="mergesort")
-    for q in range(nq):  # (a loop: an array assignment would compile numba's
-        order[q] = srt[q]  # shape-mismatch error path, ~3 s on a clean clone)
-    return g_end
+        g_end = max(g_end, j + 2)
+        for h in range(2):
+            apps[n_app, 0] = qh[j + h]
+            apps[n_app, 1] = lane
+            apps[n_app, 2] = q
+            a_w[n_app] = (pos - j) if h == 1 else 1.0 - (pos - j)
+            qh[j + h] = n_app
+            n_app += 1
+    return g_end, n_app
 
 
 @njit(inline=True)
 @no_type_check
-def _next_query_point(todo, nl, ks, qi0s, orders, st):
-    """The first grid point at which a query of one of the group's pixels in
-    `todo` starts (`qi0`) or completes (`qi0` + 1), from each lane's next query of
-    either kind (`st[8 + lane]`, `st[12 + lane]`: positions in its `order`, along
-    which `qi0` does not decrease); a large number when none is left. The grid
-    points before it need no look at the queries: ~50 queries per pixel against
-    ~1,200 points per sweep."""
-    jq = np.int64(1) << 62
-    for lane in range(nl):
-        if not todo[lane]:
-            continue
-        nq = 2 * ks[lane]
-        pa = np.int64(st[8 + lane])
-        pb = np.int64(st[12 + lane])
-        if pa < nq:
-            jq = min(jq, qi0s[lane, orders[lane, pa]])
-        if pb < nq:
-            jq = min(jq, qi0s[lane, orders[lane, pb]] + 1)
-    return jq
+def _apply_queries(a, apps, a_w, fqs, v, lanes, scales, vlo, vhi):
+    """The query shares of one grid point, from application `a` on along its list
+    (:func:`_lowpass_queries`): each adds its weight times F = S V (lane l's
+    running scale S in `scales[l]`) to its query's row (:func:`_lowpass_query`)."""
+    while a >= 0:
+        lane = apps[a, 1]
+        _lowpass_query(
+            fqs[lane, apps[a, 2]], scales[lane] * a_w[a], v, lane, lanes, vlo, vhi
+        )  # fmt: skip
+        a = apps[a, 0]
 
 
 @njit(inline=True)
@@ -1233,7 +1233,7 @@ def _lowpass_query(row, wq, v, lane, lanes, vlo, vhi):
 @njit
 @no_type_check
 def _lowpass_rows(
-    x0, tr, step, w_log, k, phase, par, ipar, cspan, crow, vv, fq, qpos, qi0, order,
+    x0, tr, step, w_log, k, phase, par, ipar, cspan, crow, vv, fq, qh, apps, a_w, sc,
     evr, evc, evlo, evhi, lp_f,
 ):  # fmt: skip
     """Event rows of the photoreceptor model linearised at `x0`
@@ -1247,7 +1247,9 @@ def _lowpass_rows(
     over the channels the band has touched so far. What a grid point needs that does
     not depend on the earlier ones (intensity, decay, logarithm) is computed first,
     in short passes over all points, into `lp_f`. The band at each point comes from
-    the column's grid `cspan`/`crow` (:func:`_column_grid`)."""
+    the column's grid `cspan`/`crow` (:func:`_column_grid`). `fq` (1, 2k, M + 1):
+    the queries' rows; `qh`, `apps`, `a_w`: their lists per grid point
+    (:func:`_lowpass_queries`; `qh` ≥ the grid's points); `sc` (≥ 1) work space."""
     m = x0.size
     n = ipar[I_SAMPLES]
     period = par[P_PERIOD]
@@ -1255,13 +1257,11 @@ def _lowpass_rows(
     g_n = ipar[I_SWEEPS] * n + 1
     d_w = max(par[P_DW], 1e-6)
     eta = par[P_ETA]
-    nq = 2 * k
+    qh[:g_n] = -1
     # F is needed up to the last query's grid point, g_end - 1
-    g_end = _lowpass_queries(tr, k, phase, dt, g_n, eta, fq, qpos, qi0, order)
+    g_end, _ = _lowpass_queries(tr, k, phase, dt, g_n, eta, fq[0], 0, qh, apps, a_w, 0)
     vv[:] = 0.0
     scale = 1.0
-    pa = 0
-    pb = 0
     # First what a grid point needs that does not depend on the earlier points, in
     # short passes over all points: one point's intensity and transcendental
     # functions are a long chain of latencies, and in one loop with the recursion
@@ -1315,18 +1315,12 @@ def _lowpass_rows(
                 vv[_u(lo + 1) + c] += wl * row[c]
             vlo = min(vlo, lo)
             vhi = max(vhi, hi)
-        # F_j completes the queries on [j - 1, j] and starts those on [j, j + 1]
-        # (V is zero outside channel 0 and the touched channels).
-        while pb < nq and qi0[order[pb]] + 1 == j:
-            qq = order[pb]
-            _lowpass_query(fq[qq], scale * (qpos[qq] - qi0[qq]), vv, 0, 1, vlo, vhi)
-            pb += 1
-        while pa < nq and qi0[order[pa]] == j:
-            qq = order[pa]
-            wq = scale * (1.0 - (qpos[qq] - qi0[qq]))
-            _lowpass_query(fq[qq], wq, vv, 0, 1, vlo, vhi)
-            pa += 1
-    _lowpass_finish(fq, step, x0, w_log, k, evr, evc, evlo, evhi)
+        # F_j's shares of the queries on [j - 1, j] and [j, j + 1] (V is zero
+        # outside channel 0 and the touched channels).
+        if qh[j] >= 0:
+            sc[0] = scale
+            _apply_queries(qh[j], apps, a_w, fq, vv, 1, sc, vlo, vhi)
+    _lowpass_finish(fq[0], step, x0, w_log, k, evr, evc, evlo, evhi)
 
 
 @njit(inline=True)
@@ -1364,7 +1358,7 @@ def _lowpass_finish(fq, step, x0, w_log, k, evr, evc, evlo, evhi):
 @no_type_check
 def _lane_lowpass_rows(
     todo, nl, xs, trs, steps, w_logs, ks, phases, par, ipar, cspan, crow, vl, fqs,
-    qposs, qi0s, orders, evrs, evcs, evlos, evhis, lpl, x4, st,
+    qh, apps, a_w, evrs, evcs, evlos, evhis, lpl, x4, st,
 ):  # fmt: skip
     """:func:`_lowpass_rows` of the group's pixels marked in `todo`, side by side, one
     per lane: they share a column offset (the fused path hands out pixels column
@@ -1375,8 +1369,9 @@ def _lane_lowpass_rows(
     its rows are the same to the last bit (tests/reconstruction/test_fused.py).
     Lane l of channel c of V is `vl[4 c + l]`; `x4` holds x0 so; `lpl` is
     `_lowpass_rows`' `lp_f` with four lanes per grid point; `st` (float64, ≥ 16)
-    work space. The grid runs to the group's last query; a pixel's queries
-    complete where its own would."""
+    work space; `qh`, `apps`, `a_w` the queries' lists per grid point, all lanes'
+    in one (:func:`_lowpass_queries`). The grid runs to the group's last query; a
+    pixel's queries complete where its own would."""
     m = xs.shape[1]
     n = ipar[I_SAMPLES]
     dt = par[P_PERIOD] / n
@@ -1384,15 +1379,18 @@ def _lane_lowpass_rows(
     d_w = max(par[P_DW], 1e-6)
     eta = par[P_ETA]
     g_end = 1
+    n_app = 0
+    qh[:g_n] = -1
     for lane in range(4):
         live = lane < nl and todo[lane]
         for c in range(m):
             x4[4 * c + lane] = xs[lane, c] if live else 0.0
         if live:
-            g_end = max(g_end, _lowpass_queries(
-                trs[lane], ks[lane], phases[lane], dt, g_n, eta, fqs[lane],
-                qposs[lane], qi0s[lane], orders[lane],
-            ))  # fmt: skip
+            g_lane, n_app = _lowpass_queries(
+                trs[lane], ks[lane], phases[lane], dt, g_n, eta, fqs[lane], lane, qh,
+                apps, a_w, n_app,
+            )  # fmt: skip
+            g_end = max(g_end, g_lane)
     # The intensity at x0 (each lane's four partial sums, as _lowpass_rows').
     base_rel = par[P_BASE_REL]
     jn = 0  # j's point within its sweep (j % n, without a division per point)
@@ -1429,19 +1427,15 @@ def _lane_lowpass_rows(
         jn = jn + 1 if jn + 1 < n else 0
     _lowpass_point_terms(lpl, 4 * g_end, 4, dt, d_w, par[P_LOG_EPS])
     # The recursion, four lanes at a time (st[0:4]: each lane's running scale S,
-    # st[4:8]: its weight of the band at this point, st[8:12] and st[12:16]: its
-    # next query in `order` that starts, and that completes, at a grid point).
+    # st[4:8]: its weight of the band at this point).
     for c in range(4 * (m + 1)):
         vl[c] = 0.0
     for lane in range(4):
         st[lane] = 1.0
-        st[8 + lane] = 0.0
-        st[12 + lane] = 0.0
     vlo = m
     vhi = 0
     jn = 0
     dtw = dt / d_w
-    jq = _next_query_point(todo, nl, ks, qi0s, orders, st)
     for j in range(g_end):
         for lane in range(4):
             alpha = lpl[1, 4 * j + lane]
@@ -1474,33 +1468,8 @@ def _lane_lowpass_rows(
             vlo = min(vlo, lo)
             vhi = max(vhi, hi)
         jn = jn + 1 if jn + 1 < n else 0
-        if j < jq:  # no lane has a query that starts or completes here
-            continue
-        for lane in range(nl):
-            if not todo[lane]:
-                continue
-            nq = 2 * ks[lane]
-            qpos = qposs[lane]
-            qi0 = qi0s[lane]
-            order = orders[lane]
-            fq = fqs[lane]
-            scale = st[lane]
-            pb = np.int64(st[12 + lane])
-            while pb < nq and qi0[order[pb]] + 1 == j:
-                qq = order[pb]
-                _lowpass_query(
-                    fq[qq], scale * (qpos[qq] - qi0[qq]), vl, lane, 4, vlo, vhi
-                )
-                pb += 1
-            st[12 + lane] = pb
-            pa = np.int64(st[8 + lane])
-            while pa < nq and qi0[order[pa]] == j:
-                qq = order[pa]
-                wq = scale * (1.0 - (qpos[qq] - qi0[qq]))
-                _lowpass_query(fq[qq], wq, vl, lane, 4, vlo, vhi)
-                pa += 1
-            st[8 + lane] = pa
-        jq = _next_query_point(todo, nl, ks, qi0s, orders, st)
+        if qh[j] >= 0:  # the lanes' query shares at this point
+            _apply_queries(qh[j], apps, a_w, fqs, vl, 4, st, vlo, vhi)
     for lane in range(nl):
         if todo[lane]:
             _lowpass_finish(
@@ -1751,10 +1720,7 @@ def solve_pixels(
     crow = np.zeros((n_col, w_col))
     col_done = np.nan
     vv = np.zeros(m + 1)
-    fq = np.zeros((nbuf, m + 1))
-    qpos = np.zeros(nbuf)
-    qi0 = np.zeros(nbuf, np.int64)
-    order = np.zeros(nbuf, np.int64)
+    fq = np.zeros((1, nbuf, m + 1))
     keep_drift = robust_steps > 0 or lowpass
     # The pixels' systems are solved `ipar[I_LANES]` (1 or 4) at a time, side by
     # side (_solve_group); each pixel of a group keeps its own state.
@@ -1814,9 +1780,10 @@ def solve_pixels(
     ng = group if lane_lp else 1
     vl = np.zeros(LANES * (m + 1) if lane_lp else 1)
     fqs = np.zeros((ng, nbuf if lane_lp else 1, m + 1))
-    qposs = np.zeros((ng, nbuf))
-    qi0s = np.zeros((ng, nbuf), np.int64)
-    orders = np.zeros((ng, nbuf), np.int64)
+    # the queries' lists per grid point, for either (_lowpass_queries)
+    qh = np.zeros(n_grid, np.int64)
+    apps = np.zeros((2 * ng * nbuf, 3), np.int64)
+    a_w = np.zeros(2 * ng * nbuf)
     lpl = np.zeros((4, LANES * n_grid if lane_lp else 1))
     x4 = np.zeros(LANES * m)
     st = np.zeros(16)
@@ -2097,8 +2064,8 @@ def solve_pixels(
                         _clear_events(evrs[lane], evlos[lane], evhis[lane], g_k[lane])
                 _lane_lowpass_rows(
                     todo, nl, xs, traws, steps2, wns, g_k, g_phase, par, ipar, cspan,
-                    crow, vl, fqs, qposs, qi0s, orders, evrs, evcs, evlos, evhis, lpl,
-                    x4, st,
+                    crow, vl, fqs, qh, apps, a_w, evrs, evcs, evlos, evhis, lpl, x4,
+                    st,
                 )  # fmt: skip
             for lane in range(nl):
                 if not todo[lane]:
@@ -2114,8 +2081,8 @@ def solve_pixels(
                         col_done = g_off[lane]
                     _lowpass_rows(
                         xs[lane], traws[lane], steps2[lane], wns[lane], k,
-                        g_phase[lane], par, ipar, cspan, crow, vv, fq, qpos, qi0,
-                        order, evrs[lane], evcs[lane], evlos[lane], evhis[lane], lp_f,
+                        g_phase[lane], par, ipar, cspan, crow, vv, fq, qh, apps, a_w,
+                        st, evrs[lane], evcs[lane], evlos[lane], evhis[lane], lp_f,
                     )  # fmt: skip
                 zz = zzs[lane]
                 for i in range(k):

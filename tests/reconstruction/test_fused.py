@@ -349,14 +349,15 @@ def test_lane_photoreceptor_rows_equal_one_pixel_bit_for_bit():
         if todo[p]:
             jit._lowpass_rows(
                 xs[p], trs[p], steps[p], wl[p], ks[p], phases[p], par, ipar, cspan,
-                crow, np.zeros(m + 1), np.zeros((nbuf, m + 1)), np.zeros(nbuf),
-                np.zeros(nbuf, np.int64), np.zeros(nbuf, np.int64), *(a[p] for a in one),
+                crow, np.zeros(m + 1), np.zeros((1, nbuf, m + 1)),
+                np.zeros(n_grid, np.int64), np.zeros((2 * nbuf, 3), np.int64),
+                np.zeros(2 * nbuf), np.zeros(1), *(a[p] for a in one),
                 np.zeros((4, n_grid)),
             )  # fmt: skip
     jit._lane_lowpass_rows(
         todo, nl, xs, trs, steps, wl, ks, phases, par, ipar, cspan, crow,
-        np.zeros(4 * (m + 1)), np.zeros((g, nbuf, m + 1)), np.zeros((g, nbuf)),
-        np.zeros((g, nbuf), np.int64), np.zeros((g, nbuf), np.int64), *lane,
+        np.zeros(4 * (m + 1)), np.zeros((g, nbuf, m + 1)), np.zeros(n_grid, np.int64),
+        np.zeros((2 * g * nbuf, 3), np.int64), np.zeros(2 * g * nbuf), *lane,
         np.zeros((4, 4 * n_grid)), np.zeros(4 * m), np.zeros(16),
     )  # fmt: skip
     for a, b in zip(one, lane):
