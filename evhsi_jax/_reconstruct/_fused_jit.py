@@ -1478,6 +1478,23 @@ def _lane_lowpass_rows(
             )  # fmt: skip
 
 
+@njit(inline=True)
+@no_type_check
+def _median(a, k, buf):
+    """The median of `a[:k]` (k ≥ 1), as `np.median`: the middle value, or the
+    mean of the two middle ones; sorted by insertion in `buf` (k is a pixel's
+    event count, a few dozen: no allocation, unlike `np.median`'s copy)."""
+    for i in range(k):
+        v = a[i]
+        j = i
+        while j > 0 and buf[j - 1] > v:
+            buf[j] = buf[j - 1]
+            j -= 1
+        buf[j] = v
+    h = k // 2
+    return buf[h] if k % 2 == 1 else (buf[h - 1] + buf[h]) / 2
+
+
 @njit
 @no_type_check
 def _assemble(
@@ -1694,6 +1711,7 @@ def solve_pixels(
     drift = np.empty(kmax)
     i_hat = np.empty(kmax)
     absz = np.empty(kmax)
+    mbuf = np.empty(kmax)  # _median's work space
     lf = np.zeros((m, m))
     inv = np.zeros(m)
     row = np.zeros(m)
@@ -2144,7 +2162,7 @@ def solve_pixels(
                     for j in range(evlo[i], evhi[i]):
                         zi += ri[j] * x[j]
                     absz[i] = abs(zi / sigma[i])
-                med = np.median(absz[:k]) if k > 0 else 0.0
+                med = _median(absz, k, mbuf) if k > 0 else 0.0
                 scale = max(1.4826 * med, 1.0)
                 any_big = False
                 for i in range(k):

@@ -374,6 +374,20 @@ def _fused_lists(rig, events, noise=None, sweeps=2):
     return pixel_lists(screened, t0)
 
 
+def test_reweighting_median_is_numpys():
+    """The robust reweighting's median (`_median`: insertion sort in a work buffer,
+    no allocation) is `np.median`'s value to the bit, odd and even counts, ties."""
+    from evhsi_jax._reconstruct import _fused_jit as jit
+
+    rng = np.random.default_rng(3)
+    buf = np.empty(64)
+    for k in (1, 2, 3, 4, 17, 28, 64):
+        for a in (rng.exponential(size=64), np.round(rng.uniform(0, 3, 64), 1)):
+            before = a.copy()
+            assert jit._median(a, k, buf) == np.median(a[:k])
+            np.testing.assert_array_equal(a, before)  # left as it was
+
+
 def test_failed_factorisation_falls_back(captures, monkeypatch):
     """A pixel the kernel reports as failed (steps −1) is re-solved by the JAX path."""
     rig, events, info = captures["colorchecker"]
