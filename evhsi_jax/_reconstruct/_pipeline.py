@@ -412,14 +412,19 @@ def _solve_chunk_cuda(rig, table, cfg, spec, sub, px, sweeps, noise=None, first=
         return x, kkt
     if sweeps <= 4 and float(noise[2]) > 0:
         more = jnp.ones(x.shape[0], bool)  # the pixels that take the next pass
-        for _ in range(cfg.lowpass_passes):
+        for p in range(cfg.lowpass_passes):
+            # After the first pass only the pixels it moved take another: to both
+            # kernels the others are padding slots (skipped: no rows formed, no
+            # solve), and _keep_moved keeps their answers.
+            n_p = n if p == 0 else jnp.where(more, n, 0)
             if cfg.lookup_order == 1:  # the photoreceptor rows by a kernel too
                 new = rows._replace(events=_lowpass_rows_cuda(rig, table, noise,
-                                                              sweeps, px, n, rows, x))
+                                                              sweeps, px, n_p, rows, x))
             else:
                 new, n = _chunk_rows(rig, table, cfg, px, sweeps, noise, x)
+                n_p = n if p == 0 else jnp.where(more, n, 0)
             rows, x, kkt, more = _keep_moved(
-                cfg, more, (rows, x, kkt), (new, *solve(new, n))
+                cfg, more, (rows, x, kkt), (new, *solve(new, n_p))
             )
             if not bool(jnp.any(more)):
                 break

@@ -156,6 +156,64 @@ def test_reconstruct_backend_cuda_equals_jax_realistic():
     assert np.max(out["sam_chunked"]) < 1e-4
 
 
+PASSES = r"""
+import json, sys
+import jax
+import numpy as np
+import jax.random as jr
+import evhsi_jax as ev
+from evhsi_jax._reconstruct import _cuda_kernel as ck, _pipeline
+from evhsi_jax._reconstruct._problem import ProblemConfig
+
+assert ck.simulated()
+keep, takes = _pipeline._keep_moved, []
+
+def spy(cfg, more, old, new):  # the CUDA path's passes (eager; JAX's are traced)
+    if not isinstance(more, jax.core.Tracer):
+        takes.append(int(np.sum(np.asarray(more))))
+    return keep(cfg, more, old, new)
+
+_pipeline._keep_moved = spy
+solve_rows, solved_n = ck.solve_rows, []
+
+def solve_spy(rows, n, *args, **kw):  # how many pixels each solve is given
+    solved_n.append(int(np.sum(np.asarray(n) > 0)))
+    return solve_rows(rows, n, *args, **kw)
+
+ck.solve_rows = solve_spy
+rig = ev.Rig(channels=16, sensor="realistic")
+events = ev.simulate(ev.load_scene("colorchecker", (1, 3)), rig, sweeps=1, key=jr.key(1))
+cfg = ProblemConfig(lowpass_tol=float(sys.argv[1]))
+a, info = ev.reconstruct(events, rig, backend="cuda", config=cfg, return_info=True)
+b = ev.reconstruct(events, rig, backend="jax", config=cfg)
+print(json.dumps({"sam": ev.metrics.sam_map_deg(a, b).tolist(), "takes": takes,
+                  "solved": int(np.sum(info.solved)), "solved_n": solved_n}))
+"""
+
+
+@pytest.mark.slow
+def test_cuda_second_photoreceptor_pass_skips_settled_pixels():
+    """After the first photoreceptor pass only the pixels it moved by more than
+    `lowpass_tol` take another; on the CUDA path the others are padding slots to
+    the rows' and the solve's kernels, and keep their answers. With a tolerance
+    at which one of the chunk's pixels goes on and another stops, the cube is
+    still the JAX backend's (which computes every pixel's pass and keeps the moved
+    ones' answers)."""
+    env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1")
+    res = subprocess.run(
+        [sys.executable, "-c", PASSES, "0.05"], env=env, capture_output=True,
+        text=True, timeout=900,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr[-3000:]
+    out = json.loads(res.stdout.strip().splitlines()[-1])
+    takes, solved_n = out["takes"], out["solved_n"]
+    assert len(takes) >= 2 and 0 < takes[1] < out["solved"]  # a mixed second pass
+    # solves: the first answer, pass 1 (every pixel), pass 2 (the moved ones only)
+    assert solved_n[0] == solved_n[1] == out["solved"]
+    assert solved_n[2] == takes[1]
+    assert np.max(out["sam"]) < 0.05
+
+
 def test_kernel_variant_strings():
     """The benchmarks' `--variants` (`PLACE:REGS[:pf|nopf]`) as keyword arguments of
     `solve_rows`; anything else is refused."""
