@@ -1368,7 +1368,7 @@ def _lane_lowpass_rows(
     through the same operations in the same order as in :func:`_lowpass_rows`, so
     its rows are the same to the last bit (tests/reconstruction/test_fused.py).
     Lane l of channel c of V is `vl[4 c + l]`; `x4` holds x0 so; `lpl` is
-    `_lowpass_rows`' `lp_f` with four lanes per grid point; `st` (float64, ≥ 16)
+    `_lowpass_rows`' `lp_f` with four lanes per grid point; `st` (float64, ≥ 8)
     work space; `qh`, `apps`, `a_w` the queries' lists per grid point, all lanes'
     in one (:func:`_lowpass_queries`). The grid runs to the group's last query; a
     pixel's queries complete where its own would."""
