@@ -219,7 +219,7 @@ def cmd_info(args):
 def cmd_reconstruct(args):
     config = _problem_config(args)  # its options checked before any work
     if args.per_sweep:
-        return _reconstruct_per_sweep(args)
+        return _reconstruct_per_sweep(args, config)
     if args.max_sweeps is not None or args.restart or args.follow:
         raise ValueError(
             "--max-sweeps, --restart and --follow apply only with --per-sweep"
@@ -363,7 +363,7 @@ def _problem_config(args):
     return ProblemConfig(lowpass_passes=args.photoreceptor_passes)
 
 
-def _run_sweeps(args, cal, out, roi, stop):
+def _run_sweeps(args, cal, out, roi, stop, config):
     from ._video import reconstruct_sweeps
 
     return reconstruct_sweeps(
@@ -371,7 +371,7 @@ def _run_sweeps(args, cal, out, roi, stop):
         cal,
         out,
         solver=args.solver,
-        config=_problem_config(args),
+        config=config,
         max_sweeps=args.max_sweeps,
         low_event_rel=args.low_events,
         # Per sweep, one device unless asked: each sweep is small and latency counts
@@ -390,7 +390,7 @@ def _run_sweeps(args, cal, out, roi, stop):
     )
 
 
-def _reconstruct_per_sweep(args):
+def _reconstruct_per_sweep(args, config):
     from ._io import EventReader
     from ._model import load_calibration
 
@@ -440,7 +440,7 @@ def _reconstruct_per_sweep(args):
         for sig in (signal.SIGINT, signal.SIGTERM):
             previous[sig] = signal.signal(sig, end_of_recording)
     try:
-        res = _run_sweeps(args, cal, out, roi, stop)
+        res = _run_sweeps(args, cal, out, roi, stop, config)
     finally:  # the handlers are this run's only (main() may be called in-process)
         if previous:
             import signal

@@ -66,7 +66,7 @@ def _calibrated(rig: ev.Rig, size, seed: int) -> ev.Calibration:
     """What a user reconstructs with (as `realism.py`)."""
     chart = ev.load_scene("gray-chart", size)
     gray = ev.simulate(chart, rig, sweeps=CHART_SWEEPS, key=jr.key(seed))
-    return ev.calibrate(gray, chart, user_init({}, rig)).calibration
+    return ev.calibrate(gray, chart, user_init(rig)).calibration
 
 
 def main() -> None:

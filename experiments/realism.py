@@ -74,7 +74,7 @@ CHART_SWEEPS = 32  # gray-chart capture: about one second on the paper's rig (8 
 HELD_OUT_SWEEPS = (1, 4)  # the held-out scene, one sweep and a short static recording
 
 
-def user_init(sensor: dict, true: ev.Rig, band_known: bool = True) -> ev.Rig:
+def user_init(true: ev.Rig, band_known: bool = True) -> ev.Rig:
     """What a user puts in `--init`: the photoreceptor cut-off (from the sensor's bias
     settings) and the band profile (measured once with a spectrometer); everything
     else is the default rig."""
@@ -126,7 +126,7 @@ def run_case(
     optics = scene.blurred(float(true.effects.psf_sigma_px)).truth_cube(true.grid)
     t0 = time.perf_counter()
     try:
-        res = ev.calibrate(gray, chart, user_init(sensor, true, band_known))
+        res = ev.calibrate(gray, chart, user_init(true, band_known))
     except ValueError as err:
         return {"error": str(err)}
     cal = res.calibration

@@ -420,9 +420,8 @@ def _solve_chunk_cuda(rig, table, cfg, spec, sub, px, sweeps, noise=None, first=
             if cfg.lookup_order == 1:  # the photoreceptor rows by a kernel too
                 new = rows._replace(events=_lowpass_rows_cuda(rig, table, noise,
                                                               sweeps, px, n_p, rows, x))
-            else:
-                new, n = _chunk_rows(rig, table, cfg, px, sweeps, noise, x)
-                n_p = n if p == 0 else jnp.where(more, n, 0)
+            else:  # (the counts are the chunk's mask's, the same as `n`)
+                new, _ = _chunk_rows(rig, table, cfg, px, sweeps, noise, x)
             rows, x, kkt, more = _keep_moved(
                 cfg, more, (rows, x, kkt), (new, *solve(new, n_p))
             )
