@@ -12,6 +12,7 @@ from ._calibrate import chart_residuals as chart_residuals
 from ._calibrate import save_calibration as save_calibration
 from ._calibrate import spectral_correction as spectral_correction
 from ._calibrate import spectral_traces as spectral_traces
+from ._calibrate import sweep_first_events as sweep_first_events
 from ._calibrate import threshold_maps_from_chart as threshold_maps_from_chart
 from ._model import Calibration as Calibration
 from ._model import load_calibration as load_calibration
@@ -27,6 +28,7 @@ __all__ = [
     "chart_log_steps",
     "chart_residuals",
     "spectral_traces",
+    "sweep_first_events",
     "threshold_maps_from_chart",
     "spectral_correction",
     "apply_spectral_correction",

@@ -6,6 +6,7 @@ from ._chart import chart_data as chart_data
 from ._chart import chart_log_steps as chart_log_steps
 from ._chart import chart_residuals as chart_residuals
 from ._chart import spectral_traces as spectral_traces
+from ._chart import sweep_first_events as sweep_first_events
 from ._chart import threshold_maps_from_chart as threshold_maps_from_chart
 from ._fit import CalibrationResult as CalibrationResult
 from ._fit import apply_spectral_correction as apply_spectral_correction

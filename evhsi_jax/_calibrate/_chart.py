@@ -37,6 +37,7 @@ __all__ = [
     "chart_log_steps",
     "chart_residuals",
     "spectral_traces",
+    "sweep_first_events",
     "threshold_maps_from_chart",
 ]
 
@@ -157,6 +158,27 @@ def chart_data(
     labels = chart.labels.reshape(-1)[px]
     used, spectrum = np.unique(labels, return_inverse=True)
     return ChartData(t, p, m, col, px, spectrum.reshape(-1), fine[used], events.width)
+
+
+def sweep_first_events(data: ChartData, period_us: float) -> np.ndarray:
+    """`(n, k)` bool: each pixel's first event in every sweep after its first event,
+    i.e. the events whose reference $ρ = τ_{k-1} + η$ lies in an earlier sweep.
+
+    Their model step rests on what happened to the pixel in the dark between sweeps,
+    which the chart's model does not see: events there are screened out (background
+    activity, a hot pixel's), yet a real comparator that fired resets its reference;
+    and a slow photoreceptor is still settling from the last sweep (at 3 kHz and the
+    dark level of the paper's rig its time constant is ~1.8 ms), firing OFF events
+    late in the dark part that the screening also drops. One such event off by a whole
+    threshold outweighs hundreds that fit (squared residuals): a 3 kHz chart was fitted
+    with β 0.5 % off and column offsets up to 65 µs off. The fit
+    (:func:`._fit._screened_chart_data`) and the threshold maps
+    (:func:`threshold_maps_from_chart`) leave these events out (~1 event in 20); they
+    stay in the lists, so the next event's reference is unchanged."""
+    sweep = np.floor(np.asarray(data.t_us, np.float64) / float(period_us))
+    first = np.zeros(sweep.shape, bool)
+    first[:, 1:] = sweep[:, 1:] != sweep[:, :-1]
+    return first & data.mask
 
 
 def spectral_traces(rig: Rig, spectra, overlap: BandTable | None = None) -> BandTable:
@@ -511,6 +533,9 @@ def threshold_maps_from_chart(
     A pixel whose RMS residual with its own thresholds is still an outlier (> 2× the
     median and > median + 8 robust σ) does not follow the chart's model (dirt, a
     defect) and gets the rig's global pair, as do pixels without ON (OFF) events.
+    Each sweep's first event (after the pixel's first) is kept in the lists but
+    estimates nothing: its reference lies across the dark part between sweeps
+    (:func:`sweep_first_events`).
 
     **Returns:** `(threshold_on, threshold_off)` maps, each `(H, W)`; with
     `return_psf` also the chosen σ (pixels).
@@ -545,10 +570,15 @@ def threshold_maps_from_chart(
         last[:] = [(y0, y1), d]
         return d
 
+    period = float(rig.period_us)
+
+    def judged(d):  # the events a threshold is estimated from (sweep_first_events)
+        return dataclasses.replace(d, mask=d.mask & ~sweep_first_events(d, period))
+
     def fitted(d, seen):
         d = _seen_through(d, seen, rig)
         steps = _log_steps(rig, d)
-        return d, steps, *_closed_form_thresholds(steps, d)
+        return d, steps, *_closed_form_thresholds(steps, judged(d))
 
     # Pass 1: the blur, by the total squared residual over all pixels; the pixels are
     # taken a band of sensor rows at a time, so memory is bounded by the band. The
@@ -566,9 +596,10 @@ def threshold_maps_from_chart(
                 if i + 1 < len(views):
                     nxt = _log_steps_begin(rig, views[i + 1])
                 steps = _log_steps_end(pending)
+                view = judged(view)
                 c_on, c_off = _closed_form_thresholds(steps, view)
                 rms_px = _rms_own_thresholds(steps, view, c_on, c_off)
-                ssr[i] += float(np.nansum(rms_px**2 * d.mask.sum(1)))
+                ssr[i] += float(np.nansum(rms_px**2 * view.mask.sum(1)))
     best = int(np.argmin(ssr))
     psf = float(psf_sigmas_px[best])
     # Pass 2: each pixel's thresholds seen through that blur.
@@ -577,8 +608,10 @@ def threshold_maps_from_chart(
         d = band_data(y0, y1)
         if d is None:
             continue
-        d, steps = _without_stray_events(rig, *fitted(d, seen_charts[best]))
-        on_b, off_b, kept = _sweep_robust_thresholds(steps, d, float(rig.period_us))
+        d, steps = _without_stray_events(
+            rig, *fitted(d, seen_charts[best]), skip=sweep_first_events(d, period)
+        )  # fmt: skip
+        on_b, off_b, kept = _sweep_robust_thresholds(steps, judged(d), period)
         rms_b = _robust_spread(steps, dataclasses.replace(d, mask=kept), on_b, off_b)
         pix.append(d.pixel), c_on.append(on_b), c_off.append(off_b)
         rms_px.append(rms_b)
@@ -610,7 +643,7 @@ def _row_bands(events: EventStream, budget: int) -> list[tuple[int, int]]:
     return bands
 
 
-def _without_stray_events(rig: Rig, d: ChartData, steps, c_on, c_off):
+def _without_stray_events(rig: Rig, d: ChartData, steps, c_on, c_off, skip=None):
     """The event lists with each pixel's stray events removed — an event whose residual
     with the pixel's own thresholds `c_on`, `c_off` is beyond max(0.5, 6 robust σ)
     thresholds: a background event inside the lit interval, or a crossing the model
@@ -619,12 +652,17 @@ def _without_stray_events(rig: Rig, d: ChartData, steps, c_on, c_off):
     thresholds or cost it them (the misfit test); with a gray chart recorded for many
     sweeps many pixels catch one. `steps` are `d`'s model log steps.
 
+    `skip` (`(n, k)` bool, optional): events that are neither judged nor removed
+    (each sweep's first: its reference lies across the dark part,
+    :func:`sweep_first_events`).
+
     **Returns:** `(d, steps)`, those pixels' lists compacted and their steps
     recomputed."""
+    use = d.mask if skip is None else d.mask & ~skip
     r = _own_residuals(steps, d, c_on, c_off)
-    r = np.where(d.mask, np.nan_to_num(r, nan=np.inf), 0.0)
-    sigma = 1.4826 * float(np.median(np.abs(r[d.mask]))) if d.mask.any() else 0.0
-    stray = d.mask & (np.abs(r) > max(STRAY_FLOOR, 6.0 * sigma))
+    r = np.where(use, np.nan_to_num(r, nan=np.inf), 0.0)
+    sigma = 1.4826 * float(np.median(np.abs(r[use]))) if use.any() else 0.0
+    stray = use & (np.abs(r) > max(STRAY_FLOOR, 6.0 * sigma))
     rows = np.flatnonzero(stray.any(axis=1) & (d.mask.sum(axis=1) > stray.sum(axis=1)))
     if rows.size == 0:
         return d, steps

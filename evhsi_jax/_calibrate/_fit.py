@@ -3,7 +3,9 @@
 **Residuals.** For every event of a chart pixel (known reflectance, used on the fine
 grid), the sensor model (release mode, paper Eq. 2) says
 $d_k = \\log(I(τ_k) + ε) - \\log(I(ρ_k) + ε) = σ_k C_{σ_k}$, $ρ_k = τ_{k-1} + η$ (the
-recording start for the first event). The residual is $r_k = d_k / C - σ_k$, in units of
+recording start for the first event; each sweep's first event after that refers
+across the dark part between sweeps and is left out, :func:`._chart.sweep_first_events`).
+The residual is $r_k = d_k / C - σ_k$, in units of
 the threshold (see :func:`chart_residuals` for why not log units): the forward model's
 own equations at the *observed* event times — smooth in every parameter, finite
 everywhere ($I + ε \\ge c + ε > 0$), and with no reconstruction inside. They are
@@ -77,6 +79,7 @@ from ._chart import (
     chart_residuals,
     lowpassed_traces,
     spectral_traces,
+    sweep_first_events,
     threshold_maps_from_chart,
 )
 
@@ -706,6 +709,10 @@ def _screened_chart_data(
         )
     else:
         hot = np.zeros((events.height, events.width), bool)
+    # Each sweep's first event refers to the sweep before, across the dark part the
+    # model does not see: left out of the fit (sweep_first_events).
+    first = sweep_first_events(data, float(rig.period_us))
+    data = dataclasses.replace(data, mask=data.mask & ~first)
     n_on = int((data.mask & (data.polarity > 0)).sum())
     n_off = int((data.mask & (data.polarity < 0)).sum())
     if n_on < 10 or n_off < 10:
