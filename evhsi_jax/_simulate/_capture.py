@@ -119,11 +119,24 @@ def _check_sweep_fits(rig: Rig, offsets: np.ndarray):
         )
 
 
+#: Photoreceptor time constants at the constant light that a sweep's window runs on
+#: after the band has left (:func:`_windows`): e^-5 of the last step is left, well
+#: below a threshold.
+SETTLE_TIME_CONSTANTS = 5.0
+
+
 def _windows(rig, table: BandTable, offsets, n_samples, dt, chunk_columns):
     """First sample index of each chunk's active window, and the common window length.
 
     The window covers band centres within 3 FWHM of the channel range (beyond, the band
-    overlaps the channels by < 1e-10 of its peak), clipped to the table.
+    overlaps the channels by < 1e-10 of its peak), clipped to the table; with a
+    photoreceptor, also its settling after the band has left the channel range:
+    `SETTLE_TIME_CONSTANTS` time constants at the constant light c (its cut-off
+    there is c times the white one's), within the sweep (the 3 FWHM already cover a
+    10 kHz photoreceptor's: its windows are as before). A slow photoreceptor (3 kHz:
+    1.8 ms at the paper rig's c) was cut off mid-decay before: the next window starts
+    settled, and the OFF events the decay still owed fired at once at its first
+    sample, a burst no sensor gives.
     """
     lam0 = float(rig.sweep_start_nm)
     speed = float(rig.band_speed_nm_per_us)
@@ -135,6 +148,11 @@ def _windows(rig, table: BandTable, offsets, n_samples, dt, chunk_columns):
     )
     t_lo = (lo - lam0) / speed - offsets
     t_hi = (hi - lam0) / speed - offsets
+    hz = float(rig.effects.photoreceptor_hz)
+    if hz > 0:  # the decay after the band: until settled, or the sweep's end
+        tau_dark = 1e6 / (2.0 * math.pi * hz * float(rig.baseline_rel))
+        band_end = (rig.grid.stop_nm - lam0) / speed - offsets
+        t_hi = np.maximum(t_hi, band_end + SETTLE_TIME_CONSTANTS * tau_dark)
     j_lo = np.clip(np.floor(t_lo / dt).astype(int) - 1, 0, n_samples)
     j_hi = np.clip(np.ceil(t_hi / dt).astype(int) + 1, 0, n_samples)
     starts, lengths = [], []

@@ -123,6 +123,36 @@ def test_lowpass_capture_lags(ideal_capture):
     assert first(e) > first(e0) + 50  # µs later
 
 
+def test_slow_photoreceptor_decays_through_the_dark_part():
+    """A 3 kHz photoreceptor is still settling (time constant ~1.8 ms at the constant
+    light) when the band has left: its sweep's window runs on until it has settled, so
+    the late OFF events thin out smoothly towards the next sweep. Cut off at the
+    band's margin, the next window started settled and the OFF events the decay still
+    owed fired at once at its first sample (this chart: 79 OFF events in the last
+    300 µs of the period against 22 in the 1.7 ms before). A 10 kHz photoreceptor's
+    windows are the ideal sensor's."""
+    from evhsi_jax._simulate._capture import _windows
+
+    chart = ev.load_scene("gray-chart", (16, 24))
+    rig = ev.Rig(photoreceptor_hz=3000.0)
+    e = ev.simulate(chart, rig, sweeps=3, key=jr.key(7))
+    period = float(rig.period_us)
+    local = np.mod(e.t_us - int(e.trigger_t_us[0]), period)
+    off = e.p == 0
+    late = np.count_nonzero(off & (local > period - 300))
+    before = np.count_nonzero(off & (local > period - 2000) & (local <= period - 300))
+    assert late <= 0.5 * before + 3
+    assert np.count_nonzero(off & (local > 27000)) > 20  # the decay's own events
+    from evhsi_jax._model import band_table
+
+    offs = np.asarray(rig.column_offsets(24), np.float64)
+    n = rig.samples_per_sweep
+    dt = period / n
+    ideal = _windows(ev.Rig(), band_table(ev.Rig()), offs, n, dt, 16)
+    assert _windows(ev.Rig(photoreceptor_hz=1e4), band_table(rig), offs, n, dt, 16) == ideal
+    assert _windows(rig, band_table(rig), offs, n, dt, 16)[1] > ideal[1]
+
+
 def test_per_crossing_threshold_noise_spreads_event_spacing():
     # A log ramp: ideal events every C/slope; with per-crossing noise the spacings
     # spread with sd σ/slope (reset noise of σ at each release).
