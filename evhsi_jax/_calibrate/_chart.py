@@ -172,10 +172,9 @@ def sweep_first_events(data: ChartData, period_us: float) -> np.ndarray:
     late in the dark part that the screening also drops. One such event off by a whole
     threshold outweighs hundreds that fit (squared residuals): a 3 kHz chart of 32
     sweeps was fitted with β 0.23 % off and a threshold noise of 0.0024 the sensor
-    does not have. The fit
-    (:func:`._fit._screened_chart_data`) and the threshold maps
-    (:func:`threshold_maps_from_chart`) leave these events out (~1 event in 20); they
-    stay in the lists, so the next event's reference is unchanged."""
+    does not have. The fit (:func:`._fit._screened_chart_data`) and the threshold
+    maps (:func:`threshold_maps_from_chart`) leave these events out (~1 event in 20);
+    they stay in the lists, so the next event's reference is unchanged."""
     sweep = np.floor(np.asarray(data.t_us, np.float64) / float(period_us))
     first = np.zeros(sweep.shape, bool)
     first[:, 1:] = sweep[:, 1:] != sweep[:, :-1]
