@@ -572,13 +572,9 @@ def threshold_maps_from_chart(
 
     period = float(rig.period_us)
 
-    def judged(d):  # the events a threshold is estimated from (sweep_first_events)
-        return dataclasses.replace(d, mask=d.mask & ~sweep_first_events(d, period))
-
-    def fitted(d, seen):
-        d = _seen_through(d, seen, rig)
-        steps = _log_steps(rig, d)
-        return d, steps, *_closed_form_thresholds(steps, judged(d))
+    def judged(d, first=None):  # the events a threshold is estimated from
+        first = sweep_first_events(d, period) if first is None else first
+        return dataclasses.replace(d, mask=d.mask & ~first)
 
     # Pass 1: the blur, by the total squared residual over all pixels; the pixels are
     # taken a band of sensor rows at a time, so memory is bounded by the band. The
@@ -608,9 +604,11 @@ def threshold_maps_from_chart(
         d = band_data(y0, y1)
         if d is None:
             continue
-        d, steps = _without_stray_events(
-            rig, *fitted(d, seen_charts[best]), skip=sweep_first_events(d, period)
-        )  # fmt: skip
+        d = _seen_through(d, seen_charts[best], rig)
+        steps = _log_steps(rig, d)
+        first = sweep_first_events(d, period)
+        on0, off0 = _closed_form_thresholds(steps, judged(d, first))
+        d, steps = _without_stray_events(rig, d, steps, on0, off0, skip=first)
         on_b, off_b, kept = _sweep_robust_thresholds(steps, judged(d), period)
         rms_b = _robust_spread(steps, dataclasses.replace(d, mask=kept), on_b, off_b)
         pix.append(d.pixel), c_on.append(on_b), c_off.append(off_b)

@@ -1804,7 +1804,7 @@ def solve_pixels(
     a_w = np.zeros(2 * ng * nbuf)
     lpl = np.zeros((4, LANES * n_grid if lane_lp else 1))
     x4 = np.zeros(LANES * m)
-    st = np.zeros(16)
+    st = np.zeros(8)  # _lane_lowpass_rows' work space (also _lowpass_rows' `sc`)
     n_ad = sweeps * g if lanes else 1
     adrs = np.zeros((group, n_ad, m) if lanes else (1, 1, 1))
     adlo = np.zeros((group, n_ad), np.int64)
