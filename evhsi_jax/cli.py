@@ -604,6 +604,7 @@ def cmd_calibrate(args):
         rows_per_label=args.rows_per_patch,
         t_start_us=args.t_start_us,
         max_steps=args.max_steps,
+        fit_photoreceptor=not args.fixed_photoreceptor,
     )
     rig = res.rig
     cfg = save_calibration(
@@ -632,6 +633,15 @@ def cmd_calibrate(args):
         f"µs, background {rig.noise_rate_hz:.2f} Hz/px, "
         f"{int(res.hot_pixels.sum())} hot pixel(s), {res.outlier_pixels} chart "
         "pixel(s) dropped as outliers"
+    )
+    how = "fitted" if res.photoreceptor_fitted else "kept from --init"
+    print(
+        f"{'photoreceptor':18s} {'':>12s} "
+        + (
+            f"cut-off {fx.photoreceptor_hz:,.0f} Hz at a white pixel ({how})"
+            if fx.photoreceptor_hz > 0
+            else f"no low-pass ({how})"
+        )
     )
     print(cfg["comment"])
     print(f"wrote {out}")
@@ -969,6 +979,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--global-only", action="store_true", help="skip the per-pixel threshold maps"
+    )
+    p.add_argument(
+        "--fixed-photoreceptor",
+        action="store_true",
+        help="keep the photoreceptor cut-off of --init (photoreceptor_hz, Hz; 0 = "
+        "none) instead of measuring it from the chart (the default: fitted jointly "
+        "with the rest; a cut-off too fast to matter, above 500 kHz, counts as none)",
     )
     p.add_argument(
         "--max-steps",

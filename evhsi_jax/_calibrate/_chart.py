@@ -246,19 +246,22 @@ def chart_log_steps(rig: Rig, data, traces=None, filtered=None):
     return jnp.where(m, level(t) - level(t_ref), 0.0)
 
 
-def lowpassed_traces(rig: Rig, traces: BandTable) -> BandTable:
+def lowpassed_traces(rig: Rig, traces: BandTable, cutoff_hz=None) -> BandTable:
     """The chart spectra's log-intensity traces through the photoreceptor low-pass
     (:func:`evhsi_jax.forward.photoreceptor_lowpass`), tabulated over λc like the
     traces: time and λc are proportional along the sweep (one table step is
     `step / (βω)` µs), so the filter runs along the table. Exact for the chart (its
-    spectra are known); differentiable in the rig."""
+    spectra are known); differentiable in the rig. `cutoff_hz`: the cut-off, when
+    it is not the rig's (static) one — a traced value while the calibration fits
+    it."""
     speed = rig.band_speed_nm_per_us
     inten = jnp.maximum(traces.values, 0.0) + rig.baseline_rel
     filt = photoreceptor_lowpass(
         jnp.log(inten + rig.log_eps),
         traces.step_nm / speed,
-        rig.effects.photoreceptor_hz,
+        rig.effects.photoreceptor_hz if cutoff_hz is None else cutoff_hz,
         rig.log_eps,
+        sequential=True,  # compiles faster (the fit differentiates it)
     )
     return BandTable(filt, traces.lo_nm, traces.step_nm)
 
@@ -377,10 +380,24 @@ def _device(d: ChartData, dtype):
 _log_steps_jit = eqx.filter_jit(chart_log_steps)
 
 
+#: The photoreceptor cut-off (Hz) that the chart programs' rigs carry as their static
+#: value whenever the sensor has a low-pass: the actual cut-off enters as an input
+#: (:func:`lowpassed_traces`' `cutoff_hz`), so a calibrated or fitted cut-off does
+#: not make every program a new compilation.
+PHOTORECEPTOR_REF_HZ = 10000.0
+
+
+def with_reference_cutoff(rig: Rig) -> Rig:
+    """`rig` with the static cut-off `PHOTORECEPTOR_REF_HZ` (it must have one)."""
+    if rig.effects.photoreceptor_hz == PHOTORECEPTOR_REF_HZ:
+        return rig
+    return rig.replace_host(photoreceptor_hz=PHOTORECEPTOR_REF_HZ)
+
+
 @eqx.filter_jit
-def _lowpassed_values(rig: Rig, traces: BandTable):
+def _lowpassed_values(rig: Rig, traces: BandTable, cutoff_hz):
     """:func:`lowpassed_traces`' values, one program for every block of a pass."""
-    return lowpassed_traces(rig, traces).values
+    return lowpassed_traces(rig, traces, cutoff_hz).values
 
 
 #: :func:`_log_steps` pads the chart's distinct spectra to at least this many (and to
@@ -418,10 +435,14 @@ def _log_steps_begin(rig: Rig, data: ChartData, block_events: int = 1 << 20):
     )
     traces = spectral_traces(rig, data.spectra)
     filtered = None
-    if rig.effects.photoreceptor_hz > 0:
+    hz = rig.effects.photoreceptor_hz
+    if hz > 0:
         # Once per pass, not inside every block's program: the low-pass's scan made
-        # each block shape a compilation of ~0.8 s (~0.15 s without it).
-        args = (rig, traces)
+        # each block shape a compilation of ~0.8 s (~0.15 s without it). The cut-off
+        # is an input, and the blocks see the reference one (only its sign matters
+        # to them): a fitted value compiles nothing new.
+        rig = with_reference_cutoff(rig)
+        args = (rig, traces, jnp.asarray(hz, rig.fwhm_nm.dtype))
         values = call_exported("chart_lowpassed", _lowpassed_values, args)
         filtered = BandTable(values, traces.lo_nm, traces.step_nm)
     dtype = rig.fwhm_nm.dtype

@@ -26,6 +26,12 @@ a dense Jacobian over its events.
 - β and τx: separable from each other because the band's entry into and exit from the
   channel range (the sharp rise at 400 nm and fall at 760 nm) are two time anchors per
   column, 360 nm / (βω) apart.
+- The photoreceptor's cut-off: separable from τx because the low-pass lags a pixel
+  by about $1/(2π f_c I)$ — longer on a darker patch, while τx shifts every pixel of
+  a column alike — and it also flattens the trace's shape near its peak. Fitted
+  with the rest (`fit_photoreceptor`): a user rarely knows it (it depends on the
+  sensor's biases), and a reconstruction that assumes an ideal photoreceptor on a
+  10 kHz one lost ~10 dB (README, "Real sensors").
 - λ0 (`sweep_start_nm`) is *not* separable from τx (λc depends on λ0 + βωτx only); it is
   kept fixed and τx absorbs it.
 - β against an unknown camera response D(λ): a flat gray patch only sees D·E blurred by
@@ -70,6 +76,7 @@ from .._model import (
 )
 from .._reconstruct import lit_interval_us, noise_model, screen_events
 from ._chart import (
+    PHOTORECEPTOR_REF_HZ,
     ChartData,
     _closed_form_thresholds,
     _host_lists,
@@ -81,6 +88,7 @@ from ._chart import (
     spectral_traces,
     sweep_first_events,
     threshold_maps_from_chart,
+    with_reference_cutoff,
 )
 
 __all__ = [
@@ -109,6 +117,14 @@ TAU_SCALE_US = 100.0  # τx parameter unit in the solver
 LM_TOL = ((1e-4, 1e-5), (1e-5, 1e-6))
 CURV_SCALE_NM = 1.0  # sweep-curvature parameter unit in the solver
 SMOOTH_WEIGHT = 0.02  # residual weight of one µs of τx second difference
+PHOTORECEPTOR_START_HZ = 10000.0  # the cut-off's start when the initial rig has none
+PHOTORECEPTOR_SLOW_START_HZ = 2000.0  # the second start, when the first did not converge
+PR_FLOOR = 1e-9  # (see _cutoff)
+#: A fitted cut-off above this (Hz) counts as no low-pass (the ideal sensor's model
+#: is used from then on): its time constant at a white pixel is < 0.32 µs, and the
+#: lag at 5 % of white < 7 µs. Photoreceptors of event sensors reach a few kHz to
+#: tens of kHz (README, "Real sensors"); an ideal sensor's chart fitted 2.7 MHz.
+PHOTORECEPTOR_IDEAL_HZ = 500_000.0
 
 
 # --- the joint fit ---------------------------------------------------------------------
@@ -255,6 +271,8 @@ def _fit_tables(params, fit: _FitData):
             BandTable(fit.overlap, fit.overlap_lo_nm, fit.overlap_step_nm),
         )
     )
+    if "pr" in params:  # the cut-off fitted (the rig's is the reference one)
+        return traces.values, lowpassed_traces(r, traces, _cutoff(params)).values
     if r.effects.photoreceptor_hz > 0:
         return traces.values, lowpassed_traces(r, traces).values
     return traces.values, jnp.zeros((0,), traces.values.dtype)
@@ -295,6 +313,17 @@ def _fit_residuals(params, profile, keep, fit: _FitData):
         res = res.reshape((-1,) + res.shape[2:])[: stop - start]
         out.append(jnp.pad(res, ((0, 0), (0, k - res.shape[1]))))
     return jnp.concatenate(out)
+
+
+def _cutoff(params):
+    """The photoreceptor cut-off (Hz) of the fit's parameter `pr`: the filter's time
+    constant at a white pixel is `pr` times the reference one
+    (`PHOTORECEPTOR_REF_HZ`), and `pr ≤ 0` is the ideal sensor (no low-pass: the
+    residuals are flat there, and the parameter's column of the Jacobian is zero).
+    So an ideal sensor is a point the fit reaches: with the cut-off itself (or its
+    logarithm) as the parameter, a fit of an ideal sensor walked towards an
+    infinite cut-off with ever smaller gains and did not converge."""
+    return PHOTORECEPTOR_REF_HZ / jnp.maximum(params["pr"], PR_FLOOR)
 
 
 def _unscale(u, scale):
@@ -501,6 +530,7 @@ class CalibrationResult:
     pixels_used: int
     seconds: float
     psf_sigma_px: float | None = None  # the chart's blur chosen for the maps
+    photoreceptor_fitted: bool = False  # the cut-off measured (else kept from init)
 
     @property
     def calibration(self) -> Calibration:
@@ -527,9 +557,16 @@ class CalibrationResult:
                 "noise_rate_hz": float(self.rig.noise_rate_hz),
                 "psf_sigma_px": self.psf_sigma_px,
                 "seconds": self.seconds,
-                "not_measured": "photoreceptor_hz (kept from the initial rig)",
+                "photoreceptor_hz": float(e.photoreceptor_hz),
+                "photoreceptor": "fitted (0: none found)"
+                if self.photoreceptor_fitted
+                else "kept from the initial rig",
             },
         )
+
+
+class NotConverged(ValueError):
+    """A calibration's Levenberg–Marquardt stopped at its step limit."""
 
 
 SCREEN_MARGIN_US = 500.0  # lit-interval margin when screening a chart capture
@@ -560,9 +597,8 @@ def measure_noise(rig: Rig, data: ChartData, residuals: np.ndarray) -> dict:
     :func:`evhsi_jax.reconstruction.pixel_system`), $s_k$ the log-intensity's slope
     at the event — on a chart known from the model. The two are separable because
     the slope differs from event to event: least squares of $(r_k C)^2$ on
-    $[1, 2 s_k^2]$, after dropping the top 1 % (outliers), each clipped at 0. The
-    photoreceptor's low-pass is not identified here (its mean delay is absorbed by
-    the column offsets).
+    $[1, 2 s_k^2]$, after dropping the top 1 % (outliers), each clipped at 0. (The
+    photoreceptor's cut-off is a parameter of the fit itself, not measured here.)
 
     **Returns:** `{"threshold_noise": σ_C, "timestamp_jitter_us": σ_t}`.
     """
@@ -680,11 +716,25 @@ def calibrate(events: EventStream, chart: Scene, init: Rig, **kw) -> Calibration
     Levenberg–Marquardt stopping tests need it — and returned in `init`'s dtype. See
     :func:`_fit_chart_float64` for the arguments.
     """
+    import time
+
+    t0 = time.perf_counter()
     dtype = init.fwhm_nm.dtype
     with jax.enable_x64(True):
-        res = _fit_chart_float64(events, chart, init.astype(jnp.float64), **kw)
+        init64 = init.astype(jnp.float64)
+        try:
+            res = _fit_chart_float64(events, chart, init64, **kw)
+        except NotConverged:
+            # A slow photoreceptor (~1 kHz) lags events by hundreds of µs: the
+            # screening and the initial guess made with the ideal model then lose
+            # its late events and start τx and β too far off, and the fit does not
+            # converge (40x64 chart). Once more with a slow cut-off to start from.
+            if not kw.get("fit_photoreceptor", True) or init.effects.photoreceptor_hz:
+                raise
+            slow = init64.replace_host(photoreceptor_hz=PHOTORECEPTOR_SLOW_START_HZ)
+            res = _fit_chart_float64(events, chart, slow, **kw)
         rig = res.rig.astype(dtype)
-    return dataclasses.replace(res, rig=rig)
+    return dataclasses.replace(res, rig=rig, seconds=time.perf_counter() - t0)
 
 
 def _screened_chart_data(
@@ -785,6 +835,7 @@ def _fit_chart_float64(
     from_data: bool = True,
     response_degree: int = 4,
     fit_curvature: bool = True,
+    fit_photoreceptor: bool = True,
     verbose: bool = False,
 ) -> CalibrationResult:
     """Fit thresholds, β, c and per-column τx to a chart capture (then per-pixel maps).
@@ -805,6 +856,11 @@ def _fit_chart_float64(
     - `fit_curvature`: fit the sweep's parabolic non-linearity `sweep_curvature_nm`
       (the band's entry and exit anchor the ends; the lamp's and camera's spectral
       structure inside the range places the middle).
+    - `fit_photoreceptor`: measure the photoreceptor's low-pass cut-off
+      `photoreceptor_hz` (starting from `init`'s, or `PHOTORECEPTOR_START_HZ` when it
+      has none; see :func:`_cutoff`); a cut-off above `PHOTORECEPTOR_IDEAL_HZ` after
+      the first stage counts as none, and the fit goes on with the ideal sensor's
+      model. False keeps `init`'s.
 
     **Returns:** a :class:`CalibrationResult`.
     """
@@ -832,6 +888,12 @@ def _fit_chart_float64(
     fixed_traces = (  # the table's values (a BandTable is not a pytree leaf holder)
         None if response_degree else spectral_traces(rig, data.spectra).values
     )
+    hz0 = rig.effects.photoreceptor_hz
+    if fit_photoreceptor:
+        # The fit's rig carries the reference cut-off, so its programs do not
+        # depend on the start (see _cutoff).
+        start_hz = hz0 if hz0 > 0 else PHOTORECEPTOR_START_HZ
+        rig = with_reference_cutoff(rig)
     p0 = {
         "log_on": jnp.zeros((), dtype),
         "log_off": jnp.zeros((), dtype),
@@ -840,6 +902,11 @@ def _fit_chart_float64(
         **({"curv": jnp.zeros((), dtype)} if fit_curvature else {}),
         "tau": jnp.zeros((w,), dtype),
         "resp": jnp.zeros((response_degree,), dtype),
+        **(
+            {"pr": jnp.asarray(PHOTORECEPTOR_REF_HZ / start_hz, dtype)}
+            if fit_photoreceptor
+            else {}
+        ),
     }
 
     keep = jnp.ones(data.t_us.shape[0], dtype)  # pixels in the fit (outliers: 0)
@@ -894,6 +961,18 @@ def _fit_chart_float64(
         params = _unscale(u, scale)
         if not all(bool(jnp.all(jnp.isfinite(v))) for v in jax.tree.leaves(params)):
             raise ValueError("the calibration diverged (non-finite parameters)")
+        if "pr" in params and float(_cutoff(params)) > PHOTORECEPTOR_IDEAL_HZ:
+            # No low-pass worth modelling: the ideal sensor's model from here on.
+            # The next stage keeps the parameter, pinned where the filter is off
+            # (pr < 0: its column of the Jacobian is zero, so it does not move), so
+            # that both stages run one compiled program; the maps and `reconstruct`
+            # get the ideal sensor's exact model.
+            if verbose:
+                print(f"calibrate: cut-off {float(_cutoff(params)):.0f} Hz: ideal")
+            u = dict(u, pr=-scale["pr"])
+            params = _unscale(u, scale)
+        if verbose and "pr" in params:
+            print(f"calibrate: cut-off {float(_cutoff(params)):.1f} Hz")
         if verbose:
             print(
                 f"calibrate (profiled={profile}): "
@@ -916,6 +995,11 @@ def _fit_chart_float64(
     fitted = _apply(params, rig, basis)
     if not fit_baseline:
         fitted = fitted.with_leaves(baseline_rel=rig.baseline_rel)
+    if "pr" in params:
+        hz = float(_cutoff(params))
+        fitted = fitted.replace_host(
+            photoreceptor_hz=hz if hz <= PHOTORECEPTOR_IDEAL_HZ else 0.0
+        )
     on_map = off_map = psf = None
     if per_pixel:
         # The compiler's freed memory back to the system before the maps' own peak
@@ -940,7 +1024,7 @@ def _fit_chart_float64(
             "lit by the sweep?"
         )
     if not converged:
-        raise ValueError(
+        raise NotConverged(
             f"the calibration did not converge: Levenberg–Marquardt stopped after "
             f"{steps} steps (limit {max_steps} per stage) at RMS residual {rms:.3f} "
             "thresholds; is the capture a gray chart of this rig? (max_steps raises "
@@ -966,6 +1050,7 @@ def _fit_chart_float64(
         pixels_used=int(data.mask.any(axis=1).sum()),
         seconds=time.perf_counter() - t0,
         psf_sigma_px=psf,
+        photoreceptor_fitted=fit_photoreceptor,
     )
 
 

@@ -68,6 +68,9 @@ def test_recovers_a_perturbed_rig(capture, fitted):
         < 0.2 * spread
     )
     assert fitted.rms_residual < 0.1 * fitted.rms_residual_initial
+    # The cut-off was fitted, and an ideal sensor's counts as none.
+    assert rig.effects.photoreceptor_hz == 0.0
+    assert fitted.calibration.report["photoreceptor"].startswith("fitted")
 
 
 def test_residual_gradients_match_finite_differences(capture):

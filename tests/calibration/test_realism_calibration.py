@@ -23,8 +23,7 @@ def realistic_files(tmp_path_factory):
                      str(sweeps), "--rig", str(d / "rig.json"), "--seed", "3",
                      "--quiet", "--out", str(d / f"{name}.npz"), "--truth",
                      str(d / f"{name}_t.npz")]) == 0  # fmt: skip
-    # (a known photoreceptor cut-off in --init would model the low-pass too, at twice
-    # the calibration time: tests/calibration/test_realism_fit.py checks that path, -m slow)
+    # (no photoreceptor cut-off in --init: the calibration measures it)
     (d / "init.json").write_text(json.dumps({"threshold_on": 0.15}))
     assert main(["calibrate", str(d / "gray.npz"), "--init", str(d / "init.json"),
                  "--out", str(d / "cal.json")]) == 0  # fmt: skip
@@ -40,6 +39,11 @@ def test_python_and_cli_reconstruct_the_same_cube(realistic_files):
     assert cal.rig.effects.threshold_noise > 0
     assert cal.report["psf_sigma_px"] in (0.4, 0.5, 0.6)  # the preset's lens: 0.5 px
     assert float(cal.rig.effects.psf_sigma_px) == cal.report["psf_sigma_px"]  # in the rig
+    # The preset's 10 kHz photoreceptor, measured although --init had none (the
+    # preset's other effects, the skewed band above all, bias it on a chart this
+    # small: 40x64, 8 sweeps gave 7.5 kHz).
+    assert 4000.0 < cal.rig.effects.photoreceptor_hz < 20000.0
+    assert cal.report["photoreceptor"].startswith("fitted")
     cube = ev.reconstruct(ev.read_events(d / "cc.npz"), cal)
     np.testing.assert_array_equal(cube, np.load(d / "cube.npz")["cube"])
     assert cube.min() >= 0.0 and cube.max() <= 1.5

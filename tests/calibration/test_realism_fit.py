@@ -38,23 +38,33 @@ def test_calibration_fits_curvature_and_a_known_lowpass():
     chart = ev.load_scene("gray-chart", (24, 32))
     true = ev.Rig(sweep_curvature_nm=3.0, photoreceptor_hz=10000.0)
     events = ev.simulate(chart, true, sweeps=2, key=jr.key(6))
-    res = ev.calibrate(events, chart, ev.Rig(photoreceptor_hz=10000.0))
+    res = ev.calibrate(
+        events, chart, ev.Rig(photoreceptor_hz=10000.0), fit_photoreceptor=False
+    )
     assert abs(float(res.rig.sweep_curvature_nm) - 3.0) < 0.5
     assert res.rms_residual < 0.01  # the low-passed chart is explained exactly
     assert res.rig.effects.threshold_noise < 0.002
+    assert res.rig.effects.photoreceptor_hz == 10000.0  # kept, as asked
+    assert res.calibration.report["photoreceptor"] == "kept from the initial rig"
 
 
-def test_slow_photoreceptor_chart_fits_without_each_sweeps_first_event():
-    """A 3 kHz photoreceptor is still settling when the band has left (OFF events
+def test_slow_photoreceptor_is_measured_and_fits_without_each_sweeps_first_event():
+    """The photoreceptor's cut-off is measured from the chart, starting from a rig
+    that has none (the calibration's default; the fit starts at 10 kHz): 3 kHz comes
+    out within 1 %.
+
+    A 3 kHz photoreceptor is still settling when the band has left (OFF events
     late in the dark part, beyond the screening's margin: dropped as background), so
     each sweep's first event refers to a level the model does not have. Left out of
     the fit (`sweep_first_events`), β and the noise come out right; with them the fit
-    took β 0.27 % off (185.49), a threshold noise of 0.0027 that the sensor does not
-    have and an RMS residual of 0.058 thresholds."""
+    (given the cut-off) took β 0.27 % off (185.49), a threshold noise of 0.0027 that
+    the sensor does not have and an RMS residual of 0.058 thresholds."""
     chart = ev.load_scene("gray-chart", (24, 32))
     true = ev.Rig(photoreceptor_hz=3000.0)
     events = ev.simulate(chart, true, sweeps=16, key=jr.key(6))
-    res = ev.calibrate(events, chart, ev.Rig(photoreceptor_hz=3000.0))
+    res = ev.calibrate(events, chart, ev.Rig())
+    assert abs(res.rig.effects.photoreceptor_hz / 3000.0 - 1.0) < 0.01
+    assert res.calibration.report["photoreceptor"].startswith("fitted")
     assert abs(float(res.rig.beta_nm_per_rad) / 185.0 - 1.0) < 1e-4
     assert res.rig.effects.threshold_noise < 0.002
     assert res.rms_residual < 0.01
@@ -70,6 +80,23 @@ def test_slow_photoreceptor_chart_fits_without_each_sweeps_first_event():
         np.testing.assert_array_equal(first[p, :k], want)
         assert not first[p, k:].any()
     assert 0 < first.sum() <= d.mask.sum() // 5
+
+
+def test_a_1khz_photoreceptor_is_found_from_the_second_start():
+    """A 1 kHz photoreceptor lags its events by hundreds of µs: from the ideal
+    model's screening and initial guess the fit does not converge, and the
+    calibration starts once more from a 2 kHz cut-off (`calibrate`)."""
+    import jax
+
+    from evhsi_jax._calibrate import _fit
+
+    chart = ev.load_scene("gray-chart", (24, 32))
+    events = ev.simulate(chart, ev.Rig(photoreceptor_hz=1000.0), sweeps=4, key=jr.key(6))
+    with jax.enable_x64(True), pytest.raises(_fit.NotConverged):
+        _fit._fit_chart_float64(events, chart, ev.Rig().astype(np.float64))
+    res = ev.calibrate(events, chart, ev.Rig())
+    assert abs(res.rig.effects.photoreceptor_hz / 1000.0 - 1.0) < 0.03
+    assert res.rms_residual < 0.05
 
 
 def test_calibration_measures_the_optics_blur_and_keeps_border_thresholds():
