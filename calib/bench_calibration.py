@@ -13,10 +13,10 @@ Writes `calib/out/bench_calibration_<H>x<W>.json`.
 `--sensor realistic`: the capture from a sensor with the `realistic` preset's effects
 on (threshold noise, jitter, a 10 kHz photoreceptor, noise events, hot pixels, ON/OFF
 correlation, latency, a 0.5 px PSF, a skewed band, sweep curvature, rate jitter), and
-`evhsi calibrate --init` given what such a user knows of the hardware (the
-photoreceptor cut-off and the band profile, as `experiments/realism.py`): the path
-a real rig's calibration takes (the chart's traces through the low-pass, the noise
-and PSF measurements). Writes `..._realistic.json`.
+`evhsi calibrate --init` given what such a user knows of the hardware (the band
+profile, as `experiments/realism.py`; the photoreceptor cut-off is measured, since
+2026-11-28): the path a real rig's calibration takes (the chart's traces through the
+low-pass, the noise and PSF measurements). Writes `..._realistic.json`.
 
 Run: `.venv/bin/python calib/bench_calibration.py --width 1280` (~4 min on 2 cores);
 `--height 720 --width 1280` for a full sensor (~10 min, ~40 M events).
@@ -77,8 +77,7 @@ def main():
         from evhsi_jax._model._rig import SENSOR_PRESETS
 
         truth = ev.Rig.from_dict({**truth.to_dict(), **SENSOR_PRESETS["realistic"]})
-        init = {  # what the user knows: the photoreceptor cut-off, the band profile
-            "photoreceptor_hz": float(truth.effects.photoreceptor_hz),
+        init = {  # what the user knows: the band profile (the cut-off is measured)
             "band_profile": {
                 "offset_nm": [float(v) for v in truth.band_profile[0]],
                 "values": [float(v) for v in truth.band_profile[1]],
@@ -126,6 +125,10 @@ def main():
         },
         "tau_rms_error_us": rms(rig.column_offsets_us, truth.column_offsets(w)),
         "threshold_map_rms": rms(cal.threshold_on, sim.threshold_on),
+        "photoreceptor_hz": {
+            "fitted": float(rig.effects.photoreceptor_hz),
+            "true": float(truth.effects.photoreceptor_hz),
+        },
     }
     suffix = "" if args.sensor == "ideal" else f"_{args.sensor}"
     path = outdir / f"bench_calibration_{h}x{w}{suffix}.json"

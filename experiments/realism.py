@@ -3,11 +3,15 @@
 Setup (a user's procedure, nothing taken from the truth): for each sensor, simulate a
 gray-chart capture (32 sweeps, about one second) and calibrate from it with
 `evhsi_jax.calibrate` starting from the default rig plus what a user knows of their
-hardware — the photoreceptor cut-off (from the bias settings) and the band profile
-(measured once with a spectrometer; the row "band_profile, not given" shows what
-leaving it out costs); then simulate the held-out scene with the *same* sensor (same
-seed: same pixels, thresholds and hot pixels), one sweep and four sweeps (a static
-scene recorded for ~0.13 s), and reconstruct it
+hardware — the band profile (measured once with a spectrometer; the row
+"band_profile, not given" shows what leaving it out costs). The photoreceptor's
+cut-off is measured by the calibration (since 2026-11-28; `--cutoff given` gives it
+in the initial rig and keeps it, the setup of the tables before; `--cutoff none`
+neither gives nor measures it, what a user who did not know it got before); then
+simulate the
+held-out scene with the *same* sensor (same seed: same pixels, thresholds and hot
+pixels), one sweep and four sweeps (a static scene recorded for ~0.13 s), and
+reconstruct it
 
 - "old": the wave-1 reconstruction — the calibrated rig and threshold maps, every event
   an exact constraint (the sensor keys of the calibration ignored);
@@ -74,12 +78,12 @@ CHART_SWEEPS = 32  # gray-chart capture: about one second on the paper's rig (8 
 HELD_OUT_SWEEPS = (1, 4)  # the held-out scene, one sweep and a short static recording
 
 
-def user_init(true: ev.Rig, band_known: bool = True) -> ev.Rig:
-    """What a user puts in `--init`: the photoreceptor cut-off (from the sensor's bias
-    settings) and the band profile (measured once with a spectrometer); everything
+def user_init(true: ev.Rig, band_known: bool = True, cutoff: str = "measured") -> ev.Rig:
+    """What a user puts in `--init`: the band profile (measured once with a
+    spectrometer) and, with `cutoff="given"`, the photoreceptor cut-off; everything
     else is the default rig."""
     init = {}
-    if true.effects.photoreceptor_hz > 0:
+    if cutoff == "given" and true.effects.photoreceptor_hz > 0:
         init["photoreceptor_hz"] = true.effects.photoreceptor_hz
     if band_known and true.band_profile is not None:
         init["band_profile"] = {
@@ -112,6 +116,7 @@ def run_case(
     band_known: bool = True,
     chart_sweeps: int = CHART_SWEEPS,
     true_maps: bool = False,
+    cutoff: str = "measured",
 ) -> dict:
     h, w = size
     chart = ev.load_scene("gray-chart", (h, w))
@@ -126,7 +131,12 @@ def run_case(
     optics = scene.blurred(float(true.effects.psf_sigma_px)).truth_cube(true.grid)
     t0 = time.perf_counter()
     try:
-        res = ev.calibrate(gray, chart, user_init(true, band_known))
+        res = ev.calibrate(
+            gray,
+            chart,
+            user_init(true, band_known, cutoff),
+            fit_photoreceptor=cutoff == "measured",
+        )
     except ValueError as err:
         return {"error": str(err)}
     cal = res.calibration
@@ -192,6 +202,14 @@ def main(argv=None):
         default=CHART_SWEEPS,
         help=f"sweeps of the gray-chart capture (default {CHART_SWEEPS} ≈ 1 s)",
     )
+    ap.add_argument(
+        "--cutoff",
+        choices=("measured", "given", "none"),
+        default="measured",
+        help="the photoreceptor cut-off: measured by the calibration (default), "
+        "given in the initial rig and kept (the setup before it was measured), or "
+        "neither (kept at 0: what a user who did not know it got before)",
+    )
     args = ap.parse_args(argv)
     ev.enable_compilation_cache()  # each sensor's programs; the caches are cleared below
     if args.table:
@@ -221,6 +239,7 @@ def main(argv=None):
             band_known="not given" not in name,
             chart_sweeps=args.chart_sweeps,
             true_maps=args.true_maps,
+            cutoff=args.cutoff,
         )
         # Each sensor compiles its own programs; a 30-case run in one process ran out
         # of LLVM code memory without this.
@@ -250,7 +269,12 @@ def main(argv=None):
             "size": list(size),
             "seed": args.seed,
             "calibration": f"gray-chart, {args.chart_sweeps} sweeps, ev.calibrate from the "
-            "default rig + the user's photoreceptor cut-off and band profile",
+            "default rig + the user's band profile"
+            + {
+                "measured": "; the photoreceptor cut-off measured",
+                "given": " and photoreceptor cut-off (kept)",
+                "none": "; no photoreceptor cut-off (neither given nor measured)",
+            }[args.cutoff],
             "held_out_scene": "colorchecker, 1 and 4 sweeps, same sensor; metrics "
             "against the scene and against the scene seen through the optics (PSF)",
         },
