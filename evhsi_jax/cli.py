@@ -1055,10 +1055,18 @@ def main(argv=None) -> int:
             from ._base import initialize_distributed
 
             initialize_distributed()
-        return int(args.func(args) or 0)
+        code = int(args.func(args) or 0)
+        sys.stdout.flush()  # (a closed pipe shows here, not at the interpreter's exit)
+        return code
     except KeyboardInterrupt:
         print("evhsi: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:
+        # The reader of stdout went away (`evhsi evaluate ... | head -1`): not an
+        # error of the input. Stop quietly, with the shell's code for SIGPIPE; stdout
+        # to /dev/null so that Python's own flush at exit does not complain.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
     except (ValueError, OSError) as err:
         if os.environ.get("EVHSI_DEBUG"):
             raise

@@ -100,6 +100,21 @@ def test_no_command_overwrites_its_input(files, capsys, tmp_path):
     assert not (tmp_path / "x.npz").exists()
 
 
+def test_a_reader_that_goes_away_is_not_an_error():
+    """`evhsi rig | head -1`: stdout's reader closed before the command wrote. Not a
+    fault of the input: no error line, the shell's code for SIGPIPE (141)."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "evhsi_jax.cli", "rig"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
+    proc.stdout.close()  # before the command has written anything
+    with proc.stderr:
+        err = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == 141
+    assert err == ""
+
+
 def test_unwritable_output_is_found_before_any_work(files, capsys):
     d, _ = files
     t0 = time.perf_counter()
