@@ -971,7 +971,7 @@ def _fit_chart_float64(
                 print(f"calibrate: cut-off {float(_cutoff(params)):.0f} Hz: ideal")
             u = dict(u, pr=-scale["pr"])
             params = _unscale(u, scale)
-        if verbose and "pr" in params:
+        if verbose and "pr" in params and params["pr"] > 0:
             print(f"calibrate: cut-off {float(_cutoff(params)):.1f} Hz")
         if verbose:
             print(
