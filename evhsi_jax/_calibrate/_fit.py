@@ -967,8 +967,11 @@ def _fit_chart_float64(
             # (pr < 0: its column of the Jacobian is zero, so it does not move), so
             # that both stages run one compiled program; the maps and `reconstruct`
             # get the ideal sensor's exact model.
-            if verbose:
-                print(f"calibrate: cut-off {float(_cutoff(params)):.0f} Hz: ideal")
+            if verbose and float(params["pr"]) != -1.0:  # (-1: pinned already)
+                print(
+                    "calibrate: no low-pass worth modelling (cut-off above "
+                    f"{PHOTORECEPTOR_IDEAL_HZ:.0f} Hz): the ideal sensor's model"
+                )
             u = dict(u, pr=-scale["pr"])
             params = _unscale(u, scale)
         if verbose and "pr" in params and params["pr"] > 0:
