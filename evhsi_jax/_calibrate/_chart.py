@@ -607,13 +607,14 @@ def threshold_maps_from_chart(
             if d is None:
                 continue
             views = [_seen_through(d, seen, rig) for seen in seen_charts]
+            first = sweep_first_events(d, period)  # (the views share d's times)
             nxt = _log_steps_begin(rig, views[0])
             for i, view in enumerate(views):
                 pending = nxt
                 if i + 1 < len(views):
                     nxt = _log_steps_begin(rig, views[i + 1])
                 steps = _log_steps_end(pending)
-                view = judged(view)
+                view = judged(view, first)
                 c_on, c_off = _closed_form_thresholds(steps, view)
                 rms_px = _rms_own_thresholds(steps, view, c_on, c_off)
                 ssr[i] += float(np.nansum(rms_px**2 * view.mask.sum(1)))
