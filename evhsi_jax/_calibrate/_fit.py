@@ -271,10 +271,10 @@ def _fit_tables(params, fit: _FitData):
             BandTable(fit.overlap, fit.overlap_lo_nm, fit.overlap_step_nm),
         )
     )
-    if "pr" in params:  # the cut-off fitted (the rig's is the reference one)
-        return traces.values, lowpassed_traces(r, traces, _cutoff(params)).values
-    if r.effects.photoreceptor_hz > 0:
-        return traces.values, lowpassed_traces(r, traces).values
+    if "pr" in params or r.effects.photoreceptor_hz > 0:
+        # (a fitted cut-off: the rig's static one is the reference)
+        hz = _cutoff(params) if "pr" in params else None
+        return traces.values, lowpassed_traces(r, traces, hz).values
     return traces.values, jnp.zeros((0,), traces.values.dtype)
 
 
