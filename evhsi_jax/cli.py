@@ -605,6 +605,7 @@ def cmd_calibrate(args):
         t_start_us=args.t_start_us,
         max_steps=args.max_steps,
         fit_photoreceptor=not args.fixed_photoreceptor,
+        fit_band={"auto": None, "fit": True, "keep": False}[args.band],
     )
     rig = res.rig
     cfg = save_calibration(
@@ -643,6 +644,16 @@ def cmd_calibrate(args):
             else f"no low-pass ({how})"
         )
     )
+    if rig.band_profile is None:
+        band = f"Gaussian, FWHM {float(rig.fwhm_nm):.2f} nm (kept from --init)"
+    else:
+        off, val = (np.asarray(v, np.float64) for v in rig.band_profile)
+        above = off[val >= 0.5]
+        band = (
+            f"{'fitted' if res.band_fitted else 'kept from --init'}: FWHM "
+            f"{above[-1] - above[0]:.2f} nm, peak at {off[np.argmax(val)]:+.2f} nm"
+        )
+    print(f"{'band profile':18s} {'':>12s} {band}")
     print(cfg["comment"])
     print(f"wrote {out}")
     return 0
@@ -986,6 +997,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="keep the photoreceptor cut-off of --init (photoreceptor_hz, Hz; 0 = "
         "none) instead of measuring it from the chart (the default: fitted jointly "
         "with the rest; a cut-off too fast to matter, above 500 kHz, counts as none)",
+    )
+    p.add_argument(
+        "--band",
+        choices=("auto", "fit", "keep"),
+        default="auto",
+        help="the band profile: fitted from the chart (a smooth correction of "
+        "--init's band_profile, or of the Gaussian of its fwhm_nm), or kept as "
+        "--init gives it; auto (default): fitted unless --init gives a band_profile",
     )
     p.add_argument(
         "--max-steps",

@@ -3,8 +3,10 @@
 Setup (a user's procedure, nothing taken from the truth): for each sensor, simulate a
 gray-chart capture (32 sweeps, about one second) and calibrate from it with
 `evhsi_jax.calibrate` starting from the default rig plus what a user knows of their
-hardware — the band profile (measured once with a spectrometer; the row
-"band_profile, not given" shows what leaving it out costs). The photoreceptor's
+hardware — the band profile (measured once with a spectrometer; in the rows "…, not
+given" and "…, band not given" the user gives none and the calibration fits it, its
+default since 2026-11-28, before which those rows showed what leaving it out cost;
+"shouldered" is a band outside the preset's skew-normal family). The photoreceptor's
 cut-off is measured by the calibration (since 2026-11-28; `--cutoff given` gives it
 in the initial rig and keeps it, the setup of the tables before; `--cutoff none`
 neither gives nor measures it, what a user who did not know it got before); then
@@ -52,7 +54,7 @@ EFFECTS = {
     "photoreceptor_hz": [30000.0, 10000.0, 3000.0],
     "noise_rate_hz": [0.3, 1.0, 3.0],
     "hot_pixel_fraction": [0.0005, 0.001, 0.003],
-    "band_profile": ["skewed"],
+    "band_profile": ["skewed", "shouldered"],
     "sweep_curvature_nm": [1.0, 3.0, 6.0],
     "sweep_rate_jitter": [0.001, 0.002, 0.005],
     "psf_sigma_px": [0.3, 0.5, 1.0],
@@ -71,6 +73,26 @@ MODERATE_MIX = {
     "sweep_curvature_nm": 3.0,
     "sweep_rate_jitter": 0.002,
 }
+
+
+def shouldered_band(fwhm_nm: float) -> dict:
+    """A band outside the skew-normal family of the `realistic` preset: a Gaussian
+    with a shoulder on its red side (35 % of the peak, 0.6 FWHM out, 0.7 times as
+    wide), as a rig's `band_profile` (the same as `tests/calibration/test_band_fit.py`)."""
+    off = np.linspace(-3 * fwhm_nm, 3 * fwhm_nm, 161)
+    s = fwhm_nm / 2.3548
+    val = np.exp(-(off**2) / (2 * s**2)) + 0.35 * np.exp(
+        -((off - 0.6 * fwhm_nm) ** 2) / (2 * (0.7 * s) ** 2)
+    )
+    return {"offset_nm": off.tolist(), "values": (val / val.max()).tolist()}
+
+
+def sensor_keys(sensor: dict) -> dict:
+    """A case's rig keys, the named "shouldered" band as its profile."""
+    if sensor.get("band_profile") == "shouldered":
+        fwhm = float(ev.Rig.from_dict(sensor | {"band_profile": None}).fwhm_nm)
+        return sensor | {"band_profile": shouldered_band(fwhm)}
+    return sensor
 
 
 CHART_SWEEPS = 32  # gray-chart capture: about one second on the paper's rig (8 before:
@@ -121,7 +143,7 @@ def run_case(
     h, w = size
     chart = ev.load_scene("gray-chart", (h, w))
     scene = ev.load_scene("colorchecker", (h, w))
-    true = ev.Rig.from_dict(sensor)
+    true = ev.Rig.from_dict(sensor_keys(sensor))
     key = jr.key(seed)
     gray = ev.simulate(chart, true, sweeps=chart_sweeps, key=key)
     truth = scene.truth_cube(true.grid)
@@ -189,7 +211,9 @@ def main(argv=None):
         "--table", metavar="JSON", help="print the markdown table of a finished run"
     )
     ap.add_argument(
-        "--only", help="comma-separated effect names to run (e.g. 'realistic preset')"
+        "--only",
+        help="comma-separated effect names to run (e.g. 'realistic preset'); "
+        "semicolon-separated when a name has a comma ('band_profile, not given;ideal')",
     )
     ap.add_argument(
         "--true-maps",
@@ -224,11 +248,17 @@ def main(argv=None):
             if args.quick and v != DEFAULT_MAGNITUDE.get(k):
                 continue
             cases.append((k, v, {k: v}))
-    cases.append(("band_profile, not given", "skewed", {"band_profile": "skewed"}))
+    # Without the band profile in the initial rig: the calibration fits it (since
+    # 2026-11-28; before, it kept the Gaussian of the default rig).
+    for band in EFFECTS["band_profile"]:
+        cases.append(("band_profile, not given", band, {"band_profile": band}))
     cases.append(("moderate mix", None, MODERATE_MIX))
     cases.append(("realistic preset", None, {"sensor": "realistic"}))
+    cases.append(("moderate mix, band not given", None, MODERATE_MIX))
+    cases.append(("realistic preset, band not given", None, {"sensor": "realistic"}))
     if args.only:
-        wanted = {v.strip() for v in args.only.split(",")}
+        sep = ";" if ";" in args.only else ","  # (';' for names with commas)
+        wanted = {v.strip() for v in args.only.split(sep)}
         cases = [c for c in cases if c[0] in wanted]
     rows = []
     for name, mag, sensor in cases:
@@ -269,7 +299,7 @@ def main(argv=None):
             "size": list(size),
             "seed": args.seed,
             "calibration": f"gray-chart, {args.chart_sweeps} sweeps, ev.calibrate from the "
-            "default rig + the user's band profile"
+            "default rig + the user's band profile (rows 'not given': fitted)"
             + {
                 "measured": "; the photoreceptor cut-off measured",
                 "given": " and photoreceptor cut-off (kept)",

@@ -73,6 +73,7 @@ from .._model import (
     Scene,
     band_overlap,
     lookup,
+    sampled_profile_overlap,
 )
 from .._reconstruct import lit_interval_us, noise_model, screen_events
 from ._chart import (
@@ -125,6 +126,26 @@ PR_FLOOR = 1e-9  # (see _cutoff)
 #: lag at 5 % of white < 7 µs. Photoreceptors of event sensors reach a few kHz to
 #: tens of kHz (README, "Real sensors"); an ideal sensor's chart fitted 2.7 MHz.
 PHOTORECEPTOR_IDEAL_HZ = 500_000.0
+#: The band profile's fit (`fit_band`): a smooth correction of log T over the
+#: profile's offsets, piecewise linear between `BAND_KNOTS` knots spread over
+#: ±`BAND_SPAN_FWHM` FWHM (constant beyond), multiplying the initial profile (a
+#: Gaussian of `fwhm_nm`, or `init`'s `band_profile`). The profile is sampled on
+#: ±3 FWHM (`BAND_SAMPLES` points), as `skewed_band_profile` samples it. (An
+#: additive correction of T instead was tried: its floor at 0 left flat
+#: directions in the tails, and the fit crept along them for 100+ steps.)
+BAND_KNOTS = 17
+BAND_SPAN_FWHM = 2.0
+BAND_SAMPLES = 161
+BAND_FLOOR = 1e-12  # the initial profile's floor (of its peak) under the correction
+#: A chart wider than this has its band fitted on its middle `BAND_CROP_COLUMNS`
+#: columns first (a whole calibration of that strip), then the whole chart is fitted
+#: with that band kept: the band's 17 parameters more than double the cost of each
+#: step over all columns, and its fit needs more steps (a 48x1280 chart's did not
+#: converge in 60).
+BAND_CROP_COLUMNS = 64
+BAND_SMOOTH_WEIGHT = 1.0
+BAND_RIDGE_WEIGHT = 0.01
+BAND_SHIFT_WEIGHT = 1.0  # per nm of the centroid's move
 
 
 # --- the joint fit ---------------------------------------------------------------------
@@ -177,7 +198,9 @@ class _FitData(eqx.Module):
     buckets: Any
     spectra: Any
     fixed_traces: Any
-    overlap: Any  # the band's overlap table: the band is not fitted, so computed once
+    overlap: Any  # the band's overlap table (computed once when the band is not fitted)
+    band: Any  # fitted band: (sample offsets, log of the initial profile, knots), or None
+    band_gate: Any  # 1: the band correction acts; 0: not (the first stage)
     overlap_lo_nm: float = eqx.field(static=True)
     overlap_step_nm: float = eqx.field(static=True)
     fit_baseline: bool = eqx.field(static=True)
@@ -262,13 +285,21 @@ def _fit_tables(params, fit: _FitData):
     log levels when the rig has a low-pass; else an empty array) at `params`: computed
     once per evaluation and shared by every block."""
     r = _fit_rig(params, fit)
+    overlap = fit.overlap
+    if "band" in params:
+        lo, step = fit.overlap_lo_nm, fit.overlap_step_nm
+        dtype = params["band"].dtype
+        centres = lo + step * jnp.arange(overlap.shape[0], dtype=dtype)
+        edges = jnp.asarray(r.grid.fine_edges_nm, dtype)
+        theta = params["band"] * fit.band_gate
+        overlap = sampled_profile_overlap(
+            fit.band[0], _band_values(theta, fit.band), edges, centres
+        )
     traces = (
         BandTable(fit.fixed_traces, fit.overlap_lo_nm, fit.overlap_step_nm)
         if fit.fixed_traces is not None
         else spectral_traces(
-            r,
-            fit.spectra,
-            BandTable(fit.overlap, fit.overlap_lo_nm, fit.overlap_step_nm),
+            r, fit.spectra, BandTable(overlap, fit.overlap_lo_nm, fit.overlap_step_nm)
         )
     )
     if "pr" in params or r.effects.photoreceptor_hz > 0:
@@ -287,6 +318,59 @@ def _block_residuals(params, tables, block, keep, profile, fit: _FitData):
     filtered = BandTable(tables[1], lo, step) if tables[1].size else None
     res = chart_residuals(r, block, traces, per_pixel=profile, filtered=filtered)
     return res * keep[:, None]
+
+
+def _band_values(theta, band):
+    """The band profile's samples at its offsets for the correction `theta` (log
+    units at the knots, constant beyond the outer ones): the initial profile times
+    exp(piecewise-linear θ)."""
+    offsets, log0, knots = band
+    return jnp.exp(log0 + jnp.interp(offsets, knots, theta))
+
+
+def _band_start(rig: Rig, dtype):
+    """`(offsets, log of the initial profile, knots)` of the band's fit (arrays):
+    the initial profile is `rig`'s sampled profile or its Gaussian, floored at
+    `BAND_FLOOR` of its peak so that the correction can raise a tail."""
+    fwhm = float(rig.fwhm_nm)
+    offsets = np.linspace(-3.0 * fwhm, 3.0 * fwhm, BAND_SAMPLES)
+    if rig.band_profile is None:
+        sigma = fwhm / (2.0 * np.sqrt(2.0 * np.log(2.0)))
+        t0 = np.exp(-0.5 * (offsets / sigma) ** 2)
+    else:
+        off, val = (np.asarray(v, np.float64) for v in rig.band_profile)
+        t0 = np.interp(offsets, off, val, left=0.0, right=0.0)
+    t0 = np.maximum(t0 / t0.max(), BAND_FLOOR)
+    knots = np.linspace(-BAND_SPAN_FWHM * fwhm, BAND_SPAN_FWHM * fwhm, BAND_KNOTS)
+    return tuple(jnp.asarray(a, dtype) for a in (offsets, np.log(t0), knots))
+
+
+def _band_prior(theta, band):
+    """The band correction's prior residuals: weighted second differences between
+    knots (smoothness), weighted values (a weak pull to the start) and the weighted
+    move of the profile's centroid from the initial one's (nm). A common shift of
+    the band is not seen by the events — τx absorbs it — so it is pinned here and
+    the two do not trade."""
+    d2 = theta[2:] - 2.0 * theta[1:-1] + theta[:-2]
+    offsets, t0 = band[0], jnp.exp(band[1])
+    t = _band_values(theta, band)
+    move = jnp.sum(offsets * t) / jnp.sum(t) - jnp.sum(offsets * t0) / jnp.sum(t0)
+    return jnp.concatenate(
+        [
+            BAND_SMOOTH_WEIGHT * d2,
+            BAND_RIDGE_WEIGHT * theta,
+            (BAND_SHIFT_WEIGHT * move)[None],
+        ]
+    )
+
+
+def fitted_band_profile(theta, band) -> dict:
+    """The fitted band as the rig key `band_profile` (peak 1)."""
+    vals = np.asarray(_band_values(jnp.asarray(theta), band), np.float64)
+    return {
+        "offset_nm": [float(v) for v in np.asarray(band[0])],
+        "values": [float(v) for v in vals / vals.max()],
+    }
 
 
 def _prior_residuals(params, fit: _FitData):
@@ -443,6 +527,19 @@ def _fit_system(u, args):
                 jnp.pad(bands[q] * bands[q + off], (q, 2 - q)) for q in range(3 - off)
             )[: w - off]
             htt = htt + jnp.diag(d, off) + (jnp.diag(d, -off) if off else 0.0)
+    if "band" in u:
+        # The band correction's prior; "band" flattens first, so its entries are the
+        # first of the globals.
+        k = u["band"].shape[0]
+
+        def prior(ub):
+            return _band_prior(ub / scale["band"], fit.band)
+
+        rb = prior(u["band"])
+        jb = jax.jacfwd(prior)(u["band"])
+        hgg = hgg.at[:k, :k].add(jb.T @ jb)
+        bg = bg.at[:k].add(jb.T @ rb)
+        ss = ss + rb @ rb
     h = jnp.block([[hgg, hgt.T], [hgt, htt]])
     return h, jnp.concatenate([bg, bt]), ss + rp @ rp
 
@@ -531,6 +628,7 @@ class CalibrationResult:
     seconds: float
     psf_sigma_px: float | None = None  # the chart's blur chosen for the maps
     photoreceptor_fitted: bool = False  # the cut-off measured (else kept from init)
+    band_fitted: bool = False  # the band profile fitted (else kept from init)
 
     @property
     def calibration(self) -> Calibration:
@@ -561,6 +659,7 @@ class CalibrationResult:
                 "photoreceptor": "fitted (0: none found)"
                 if self.photoreceptor_fitted
                 else "kept from the initial rig",
+                "band": "profile fitted" if self.band_fitted else "kept from the initial rig",
             },
         )
 
@@ -836,7 +935,9 @@ def _fit_chart_float64(
     response_degree: int = 4,
     fit_curvature: bool = True,
     fit_photoreceptor: bool = True,
+    fit_band: bool | None = None,
     verbose: bool = False,
+    maps: bool = True,
 ) -> CalibrationResult:
     """Fit thresholds, β, c and per-column τx to a chart capture (then per-pixel maps).
 
@@ -861,12 +962,35 @@ def _fit_chart_float64(
       has none; see :func:`_cutoff`); a cut-off above `PHOTORECEPTOR_IDEAL_HZ` after
       the first stage counts as none, and the fit goes on with the ideal sensor's
       model. False keeps `init`'s.
+    - `fit_band`: fit the band profile `band_profile` — a smooth correction
+      (`BAND_KNOTS` knots of log T) of `init`'s profile, or of the Gaussian of its
+      `fwhm_nm` — in the last stage. A gray chart sees the band's shape where the
+      band enters and leaves the channel range: its intensity there is the
+      profile's cumulative integral, sampled by many threshold crossings. Its centroid
+      is kept (τx absorbs a common shift). None (default): fitted when `init` gives
+      no `band_profile` and `per_pixel`, kept when it does (a profile measured with
+      a spectrometer).
+    - `maps`: with `per_pixel`, also the per-pixel threshold maps and the PSF
+      (False: the profiled stage only, as for the band's strip).
 
     **Returns:** a :class:`CalibrationResult`.
     """
     import time
 
     t0 = time.perf_counter()
+    if fit_band is None:
+        # (Not with one threshold pair for all pixels: the band's shape then chases
+        # the pixels' threshold spread.)
+        fit_band = init.band_profile is None and per_pixel
+    band_fitted = fit_band
+    if fit_band and events.width > BAND_CROP_COLUMNS:
+        init = _band_from_strip(
+            events, chart, init, t_start_us=t_start_us, rows_per_label=rows_per_label,
+            max_steps=max_steps, fit_baseline=fit_baseline, from_data=from_data,
+            response_degree=response_degree, fit_curvature=fit_curvature,
+            fit_photoreceptor=fit_photoreceptor, verbose=verbose,
+        )  # fmt: skip
+        fit_band = False
     w = events.width
     rig = _with_column_offsets(init, w)
     if rig.column_offsets_us.shape[0] != w:
@@ -886,7 +1010,9 @@ def _fit_chart_float64(
     data = _by_event_count(data)  # (the buckets of the fit's passes)
     basis = _response_basis(rig, response_degree)
     fixed_traces = (  # the table's values (a BandTable is not a pytree leaf holder)
-        None if response_degree else spectral_traces(rig, data.spectra).values
+        None
+        if response_degree or fit_band
+        else spectral_traces(rig, data.spectra).values
     )
     hz0 = rig.effects.photoreceptor_hz
     if fit_photoreceptor:
@@ -907,6 +1033,7 @@ def _fit_chart_float64(
             if fit_photoreceptor
             else {}
         ),
+        **({"band": jnp.zeros((BAND_KNOTS,), dtype)} if fit_band else {}),
     }
 
     keep = jnp.ones(data.t_us.shape[0], dtype)  # pixels in the fit (outliers: 0)
@@ -915,8 +1042,10 @@ def _fit_chart_float64(
     # process, and the persistent cache serves the next process.
     overlap = band_overlap(rig)
     buckets, bucket_rows = _bucketed(data, dtype)
+    band = _band_start(rig, dtype) if fit_band else None
     fit = _FitData(rig, basis, buckets, jnp.asarray(data.spectra, dtype), fixed_traces,
-                   overlap.values, overlap.lo_nm, overlap.step_nm,
+                   overlap.values, band, jnp.ones((), dtype), overlap.lo_nm,
+                   overlap.step_nm,
                    fit_baseline, bucket_rows)  # fmt: skip
     ones = jnp.ones_like(keep)
 
@@ -947,6 +1076,11 @@ def _fit_chart_float64(
     stages = (False, True) if per_pixel else (False,)
     for profile in stages:
         last = profile == stages[-1]  # a start for the next stage, or the answer
+        # The band's shape is fitted in the last stage only: with one threshold pair
+        # the first stage's misfit is the pixels' threshold spread, which the band's
+        # shape then chased (74 steps on a 32x48 chart, against 31 without it).
+        gate = jnp.asarray(float(last or band is None), dtype)
+        fit = eqx.tree_at(lambda f: f.band_gate, fit, gate)
         stage = (u, scale, jnp.asarray(profile), keep, fit, max_steps, bool(verbose),
                  jnp.asarray(LM_TOL[int(last)], dtype))  # fmt: skip
         # (verbose prints from inside the solve: a host callback, which an exported
@@ -979,7 +1113,8 @@ def _fit_chart_float64(
         if verbose:
             print(
                 f"calibrate (profiled={profile}): "
-                f"{'converged' if converged else 'not converged'}, rms "
+                f"{'converged' if converged else 'not converged'} after "
+                f"{int(n_steps)} steps, rms "
                 f"{rms_of(sum_sq(residuals(params, profile, keep)), keep):.5f}"
             )
         if not profile:
@@ -998,13 +1133,15 @@ def _fit_chart_float64(
     fitted = _apply(params, rig, basis)
     if not fit_baseline:
         fitted = fitted.with_leaves(baseline_rel=rig.baseline_rel)
+    if band is not None:
+        fitted = fitted.with_band_profile(fitted_band_profile(params["band"], band))
     if "pr" in params:
         hz = float(_cutoff(params))
         fitted = fitted.replace_host(
             photoreceptor_hz=hz if hz <= PHOTORECEPTOR_IDEAL_HZ else 0.0
         )
     on_map = off_map = psf = None
-    if per_pixel:
+    if per_pixel and maps:
         # The compiler's freed memory back to the system before the maps' own peak
         # (a first run, which compiles, held ~0.5 GB of it here).
         release_free_memory()
@@ -1054,7 +1191,31 @@ def _fit_chart_float64(
         seconds=time.perf_counter() - t0,
         psf_sigma_px=psf,
         photoreceptor_fitted=fit_photoreceptor,
+        band_fitted=band_fitted,
     )
+
+
+def _band_from_strip(events: EventStream, chart: Scene, init: Rig, **kw) -> Rig:
+    """`init` with the band profile of a calibration of the chart's middle
+    `BAND_CROP_COLUMNS` columns (all rows; `kw` as :func:`_fit_chart_float64`'s)."""
+    w = events.width
+    x0 = (w - BAND_CROP_COLUMNS) // 2
+    roi = (x0, 0, x0 + BAND_CROP_COLUMNS, events.height)
+    offs = np.asarray(init.column_offsets(w), np.float64)[x0 : x0 + BAND_CROP_COLUMNS]
+    strip = dataclasses.replace(chart, labels=np.asarray(chart.labels)[:, roi[0] : roi[2]])
+    sub = _fit_chart_float64(
+        events.crop(roi),
+        strip,
+        init.with_leaves(column_offsets_us=jnp.asarray(offs, init.fwhm_nm.dtype)),
+        per_pixel=True,
+        fit_band=True,
+        maps=False,
+        **kw,
+    )
+    off, val = sub.rig.band_profile
+    if kw.get("verbose"):
+        print(f"calibrate: band profile fitted on columns {roi[0]}-{roi[2] - 1}")
+    return init.with_band_profile({"offset_nm": list(off), "values": list(val)})
 
 
 def save_calibration(path, result: CalibrationResult, *, comment: str = "") -> dict:

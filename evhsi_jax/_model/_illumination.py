@@ -142,6 +142,18 @@ def _profile_overlap(profile, edges, centres):
     return g[:, 1:] - g[:, :-1]
 
 
+def sampled_profile_overlap(offsets_nm, values, edges, centres):
+    """:func:`_profile_overlap` with the profile's samples as arrays that may be
+    traced (the calibration fits them, `fit_band`): the same piecewise-linear
+    profile's cumulative integral, in `values`' dtype, differenced over each
+    sub-bin. `offsets_nm` are fixed."""
+    off = jnp.asarray(offsets_nm, values.dtype)
+    area = 0.5 * (values[1:] + values[:-1]) * jnp.diff(off)
+    cum = jnp.concatenate([jnp.zeros((1,), values.dtype), jnp.cumsum(area)])
+    g = jnp.interp(edges[None, :] - centres[:, None], off, cum)
+    return g[:, 1:] - g[:, :-1]
+
+
 def _gaussian_overlap(fwhm_nm, edges, centres):
     sigma = fwhm_to_sigma(fwhm_nm)
     # ∫ exp(-(λ-λc)²/2σ²) dλ over [e_f, e_f+1] = σ√(π/2) [erf(u_f+1) - erf(u_f)].

@@ -438,6 +438,16 @@ class Rig(eqx.Module):
             object.__setattr__(new, k, v)
         return new
 
+    def with_band_profile(self, profile) -> Rig:
+        """A copy with the rig key `band_profile` replaced (`None`, `"skewed"` or
+        `{offset_nm, values}`), validated like a rig file's key."""
+        prof = _band_profile(profile, {"fwhm_nm": float(self.fwhm_nm)})
+        return self._replaced({
+            "band_profile": None
+            if prof is None
+            else (tuple(prof["offset_nm"]), tuple(prof["values"]))
+        })  # fmt: skip
+
     def replace_host(self, **values) -> Rig:
         """A copy with host-side settings replaced by their rig keys (`seed`,
         `threshold_sigma`, `noise_rate_hz`, `channel_gain` or a sensor-effect key such

@@ -19,8 +19,9 @@ from evhsi_jax._calibrate._chart import chart_data
 from evhsi_jax._model import band_overlap
 
 
-@pytest.fixture(scope="module")
-def system():
+@pytest.fixture(scope="module", params=[False, True], ids=["band kept", "band fitted"])
+def system(request):
+    """(With the band fitted, the system holds its 17 knots and their prior too.)"""
     h, w = 12, 6
     truth = ev.Rig(threshold_on=0.17, photoreceptor_hz=20000.0)
     chart = ev.load_scene("gray-chart", (h, w))
@@ -37,9 +38,11 @@ def system():
         finally:
             F.BLOCK_EVENTS = old
         ov = band_overlap(rig)
+        band = F._band_start(rig, jnp.float64) if request.param else None
         fit = F._FitData(rig, F._response_basis(rig, 2), buckets,
-                         jnp.asarray(data.spectra), None, ov.values, ov.lo_nm,
-                         ov.step_nm, True, rows)  # fmt: skip
+                         jnp.asarray(data.spectra), None, ov.values, band,
+                         jnp.ones((), jnp.float64), ov.lo_nm, ov.step_nm, True,
+                         rows)  # fmt: skip
         key = jr.key(1)
         u = {  # away from the start, so every derivative is non-trivial
             "log_on": jnp.asarray(0.02),
@@ -50,6 +53,8 @@ def system():
             "tau": 0.05 * jr.normal(key, (w,), jnp.float64),
             "resp": jnp.asarray([0.03, -0.02]),
         }
+        if request.param:
+            u["band"] = 0.1 * jr.normal(jr.key(2), (F.BAND_KNOTS,), jnp.float64)
         scale = jax.tree.map(lambda a: 1.5 + jnp.zeros_like(a), u)
         keep = jnp.ones(data.t_us.shape[0]).at[3].set(0.0)  # one pixel dropped
         yield u, scale, keep, fit, data, buckets
@@ -61,7 +66,8 @@ def _dense(u, scale, keep, fit, profile):
     def all_residuals(uf):
         th = F._theta(uf, unravel, scale)
         res = F._fit_residuals(th, profile, keep, fit).reshape(-1)
-        return jnp.concatenate([res, F._prior_residuals(th, fit)])
+        band = [F._band_prior(th["band"], fit.band)] if "band" in th else []
+        return jnp.concatenate([res, F._prior_residuals(th, fit), *band])
 
     r = all_residuals(flat)
     j = jax.jacfwd(all_residuals)(flat)

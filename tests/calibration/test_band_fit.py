@@ -1,0 +1,103 @@
+"""The calibration fits the band profile: a gray chart sees the band's shape where the
+band enters and leaves the channel range (README, Calibration, "The band profile")."""
+
+import contextlib
+import io
+
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
+import pytest
+
+import evhsi_jax as ev
+from evhsi_jax._model._illumination import (
+    TABLE_STEP_NM,
+    _profile_overlap,
+    sampled_profile_overlap,
+)
+
+
+def _shouldered_band(fwhm: float, shoulder: float = 0.35) -> dict:
+    """A band outside every parametric family the fit knows: a Gaussian with a
+    shoulder on its red side (35 % of the peak, 0.6 FWHM out; 0: the Gaussian)."""
+    off = np.linspace(-3 * fwhm, 3 * fwhm, 161)
+    s = fwhm / 2.3548
+    val = np.exp(-(off**2) / (2 * s**2)) + shoulder * np.exp(
+        -((off - 0.6 * fwhm) ** 2) / (2 * (0.7 * s) ** 2)
+    )
+    return {"offset_nm": off.tolist(), "values": (val / val.max()).tolist()}
+
+
+def test_the_traced_overlap_is_the_sampled_profiles():
+    prof = _shouldered_band(17.5)
+    off, val = np.asarray(prof["offset_nm"]), np.asarray(prof["values"])
+    with jax.enable_x64(True):
+        edges = jnp.asarray(np.arange(390.0, 771.0, 1.0))
+        centres = jnp.asarray(300.0 + TABLE_STEP_NM * np.arange(4000))
+        want = _profile_overlap((tuple(off), tuple(val)), edges, centres)
+        got = sampled_profile_overlap(off, jnp.asarray(val), edges, centres)
+        np.testing.assert_allclose(got, want, atol=1e-12 * float(jnp.max(want)))
+
+
+def test_with_band_profile_validates_like_a_rig_file():
+    rig = ev.Rig().with_band_profile(_shouldered_band(17.5))
+    assert rig.band_profile is not None and max(rig.band_profile[1]) == 1.0
+    assert ev.Rig().with_band_profile("skewed").band_profile is not None
+    assert rig.with_band_profile(None).band_profile is None
+    with pytest.raises(ValueError, match="band_profile"):
+        ev.Rig().with_band_profile({"offset_nm": [0, 1, 2], "values": [0, -1, 0]})
+
+
+@pytest.fixture(scope="module")
+def shouldered():
+    """A 24x32 gray chart of 4 sweeps and a held-out TCS sweep, from a sensor whose
+    band has a shoulder. Calibrated from the default rig, which has a Gaussian band:
+    the band fitted (the default when the initial rig gives no profile), here on a
+    16-column strip first (`BAND_CROP_COLUMNS`, 64 by default: the path of a wide
+    sensor); and from a rig that gives the Gaussian as a sampled profile, which the
+    calibration keeps by default (a profile measured with a spectrometer)."""
+    from evhsi_jax._calibrate import _fit
+
+    true = ev.Rig.from_dict({"band_profile": _shouldered_band(17.5)})
+    key = jr.key(7)
+    chart = ev.load_scene("gray-chart", (24, 32))
+    gray = ev.simulate(chart, true, sweeps=4, key=key)
+    scene = ev.load_scene("tcs", (24, 32))
+    held_out = ev.simulate(scene, true, sweeps=1, key=key)
+    truth = scene.truth_cube(true.grid)
+    printed = io.StringIO()
+    with pytest.MonkeyPatch.context() as m, contextlib.redirect_stdout(printed):
+        m.setattr(_fit, "BAND_CROP_COLUMNS", 16)
+        fitted = ev.calibrate(gray, chart, ev.Rig(), verbose=True)
+    given = ev.Rig.from_dict({"band_profile": _shouldered_band(17.5, shoulder=0.0)})
+    kept = ev.calibrate(gray, chart, given)
+    return true, held_out, truth, fitted, kept, given, printed.getvalue()
+
+
+def test_a_shouldered_band_is_fitted_from_a_gray_chart(shouldered):
+    true, held_out, truth, fitted, kept, _, printed = shouldered
+    assert "band profile fitted on columns 8-23" in printed
+    assert fitted.calibration.report["band"] == "profile fitted"
+    # The Gaussian leaves a misfit the fitted band does not (noise-free sensor).
+    assert fitted.rms_residual < 0.01 < kept.rms_residual
+    # The profile up to a shift (τx absorbs a common shift of the band).
+    off, val = (np.asarray(v) for v in fitted.rig.band_profile)
+    t_off, t_val = (np.asarray(v) for v in true.band_profile)
+    grid = np.linspace(-40.0, 40.0, 801)
+    got = np.interp(grid, off, val)
+    err = min(
+        np.abs(got - np.interp(grid - shift, t_off, t_val)).max()
+        for shift in np.arange(-8.0, 8.01, 0.1)
+    )
+    assert err < 0.1
+    # What it is for: the held-out scene.
+    psnr_fit = ev.evaluate(ev.reconstruct(held_out, fitted.calibration), truth)["psnr_db"]
+    psnr_kept = ev.evaluate(ev.reconstruct(held_out, kept.calibration), truth)["psnr_db"]
+    assert psnr_fit > 33.0 and psnr_fit > psnr_kept + 8.0
+
+
+def test_a_given_band_profile_is_kept_by_default(shouldered):
+    *_, kept, given, _ = shouldered
+    assert kept.rig.band_profile == given.band_profile
+    assert kept.calibration.report["band"] == "kept from the initial rig"
