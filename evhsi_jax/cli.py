@@ -1009,9 +1009,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--max-steps",
         type=int,
-        default=60,
+        default=100,
         help="Levenberg–Marquardt step limit per stage; a fit that reaches it is "
-        "refused (default 60)",
+        "refused (default 100)",
     )
     p.add_argument(
         "--t-start-us",

@@ -139,6 +139,7 @@ def run_case(
     chart_sweeps: int = CHART_SWEEPS,
     true_maps: bool = False,
     cutoff: str = "measured",
+    band: str = "auto",
 ) -> dict:
     h, w = size
     chart = ev.load_scene("gray-chart", (h, w))
@@ -158,6 +159,7 @@ def run_case(
             chart,
             user_init(true, band_known, cutoff),
             fit_photoreceptor=cutoff == "measured",
+            fit_band=None if band == "auto" else False,
         )
     except ValueError as err:
         return {"error": str(err)}
@@ -234,6 +236,14 @@ def main(argv=None):
         "given in the initial rig and kept (the setup before it was measured), or "
         "neither (kept at 0: what a user who did not know it got before)",
     )
+    ap.add_argument(
+        "--band",
+        choices=("auto", "keep"),
+        default="auto",
+        help="the band profile: the calibration's default (fitted when the user gives "
+        "none) or kept as given (the Gaussian of the default rig when not given: what "
+        "a user got before 2026-11-28)",
+    )
     args = ap.parse_args(argv)
     ev.enable_compilation_cache()  # each sensor's programs; the caches are cleared below
     if args.table:
@@ -270,6 +280,7 @@ def main(argv=None):
             chart_sweeps=args.chart_sweeps,
             true_maps=args.true_maps,
             cutoff=args.cutoff,
+            band=args.band,
         )
         # Each sensor compiles its own programs; a 30-case run in one process ran out
         # of LLVM code memory without this.

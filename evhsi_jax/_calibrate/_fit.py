@@ -10,13 +10,13 @@ the threshold (see :func:`chart_residuals` for why not log units): the forward m
 own equations at the *observed* event times — smooth in every parameter, finite
 everywhere ($I + ε \\ge c + ε > 0$), and with no reconstruction inside. They are
 fitted jointly with optimistix's Levenberg–Marquardt for the ON/OFF thresholds, the
-sweep coefficient β, the constant light c, a smooth correction of D(λ) and one time
-offset τx per column (with a second-difference smoothness prior
-across columns). The event residuals are never linearised all at once: their
-Gauss–Newton normal equations are accumulated over blocks of pixels and the solver sees
-a reduced residual with the same model (:func:`_fit_residuals_scaled`), so memory is
-bounded by a block and a 1280-column sensor (≈1300 unknowns) needs a 1300² matrix, not
-a dense Jacobian over its events.
+sweep coefficient β, the constant light c, a smooth correction of D(λ), the band
+profile, the photoreceptor's cut-off and one time offset τx per column (with a
+second-difference smoothness prior across columns). The event residuals are never
+linearised all at once: their Gauss–Newton normal equations are accumulated over
+blocks of pixels and the solver sees a reduced residual with the same model
+(:func:`_fit_residuals_scaled`), so memory is bounded by a block and a 1280-column
+sensor (≈1300 unknowns) needs a 1300² matrix, not a dense Jacobian over its events.
 
 **What gray patches can and cannot separate.**
 
@@ -45,6 +45,13 @@ a dense Jacobian over its events.
   scale is not identifiable (the peak normalisation removes it), and structure finer
   than the band is not seen: per-channel factors come from a white reference of known
   spectrum (:func:`spectral_correction`, paper supplement 6.1).
+- The band profile: inside the channel range a flat patch sees the band only
+  through its convolution with D·E, but where the band enters and leaves the range
+  a pixel's intensity is the profile's cumulative integral (from c to the full
+  level: ~20 crossings of a 0.15 threshold), and D is a smooth correction: so its
+  shape is fitted (`fit_band`, the last stage). Its scale (the table's
+  normalisation removes it) and a common shift (τx's) are not seen: a weak prior
+  and a pinned centroid fix them.
 - Per-pixel thresholds: with the global parameters fixed, each pixel's residuals are
   linear in its own C_on, C_off: closed-form means of the observed log steps
   (:func:`threshold_maps_from_chart`). Needs ≥ 1 ON and ≥ 1 OFF event per pixel; pixels
@@ -137,12 +144,17 @@ BAND_KNOTS = 17
 BAND_SPAN_FWHM = 2.0
 BAND_SAMPLES = 161
 BAND_FLOOR = 1e-12  # the initial profile's floor (of its peak) under the correction
-#: A chart wider than this has its band fitted on its middle `BAND_CROP_COLUMNS`
-#: columns first (a whole calibration of that strip), then the whole chart is fitted
-#: with that band kept: the band's 17 parameters more than double the cost of each
-#: step over all columns, and its fit needs more steps (a 48x1280 chart's did not
-#: converge in 60).
-BAND_CROP_COLUMNS = 64
+#: A chart wider than `BAND_DIRECT_COLUMNS` has its band fitted on its middle
+#: `BAND_CROP_COLUMNS` columns first (a whole calibration of that strip); the whole
+#: chart is then fitted with that band kept and the strip's other global values as
+#: its start. The band's 17 parameters more than double the cost of each step over
+#: all columns, and its fit needs more steps (a 48x1280 chart's did not converge in
+#: 60). A 32-column strip calibrated a 48x1280 chart in 61.8 / 34.6 s (first /
+#: second process), a 64-column one in 68.5 / 43.5 s (experiments/PERFORMANCE_LOG.md,
+#: "The band profile").
+BAND_DIRECT_COLUMNS = 64
+BAND_CROP_COLUMNS = 32
+BAND_TANGENT_BATCH = 4  # tangents of the band's overlap table formed at once
 BAND_SMOOTH_WEIGHT = 1.0
 BAND_RIDGE_WEIGHT = 0.01
 BAND_SHIFT_WEIGHT = 1.0  # per nm of the centroid's move
@@ -287,14 +299,8 @@ def _fit_tables(params, fit: _FitData):
     r = _fit_rig(params, fit)
     overlap = fit.overlap
     if "band" in params:
-        lo, step = fit.overlap_lo_nm, fit.overlap_step_nm
-        dtype = params["band"].dtype
-        centres = lo + step * jnp.arange(overlap.shape[0], dtype=dtype)
-        edges = jnp.asarray(r.grid.fine_edges_nm, dtype)
         theta = params["band"] * fit.band_gate
-        overlap = sampled_profile_overlap(
-            fit.band[0], _band_values(theta, fit.band), edges, centres
-        )
+        overlap = _band_overlap(_band_values(theta, fit.band), fit)
     traces = (
         BandTable(fit.fixed_traces, fit.overlap_lo_nm, fit.overlap_step_nm)
         if fit.fixed_traces is not None
@@ -318,6 +324,33 @@ def _block_residuals(params, tables, block, keep, profile, fit: _FitData):
     filtered = BandTable(tables[1], lo, step) if tables[1].size else None
     res = chart_residuals(r, block, traces, per_pixel=profile, filtered=filtered)
     return res * keep[:, None]
+
+
+def _band_overlap(values, fit: _FitData):
+    """The overlap table of the band sampled as `values` at `fit.band`'s offsets
+    (:func:`sampled_profile_overlap`, 6,601 × 360 on the default rig). When the
+    fine edges lie on the table's grid of λc (the default rig's: 1 nm and 0.1 nm),
+    every entry's offset λ − λc is a multiple of the table step, so the profile's
+    cumulative integral is interpolated once per distinct offset (~10⁴) and the
+    table gathered from those, instead of one search per entry: the fit forms
+    this table and its tangent for every parameter at every step."""
+    lo, step, n = fit.overlap_lo_nm, fit.overlap_step_nm, fit.overlap.shape[0]
+    edges = np.asarray(fit.rig.grid.fine_edges_nm, np.float64)
+    k = (edges - lo) / step
+    dtype = values.dtype
+    if not np.allclose(k, np.round(k), rtol=0.0, atol=1e-6):
+        centres = lo + step * jnp.arange(n, dtype=dtype)
+        return sampled_profile_overlap(fit.band[0], values, jnp.asarray(edges, dtype), centres)
+    k = np.round(k).astype(np.int64)
+    k0 = int(k[0]) - (n - 1)  # the smallest k_e - i
+    x = step * np.arange(k0, int(k[-1]) + 1)
+    off = fit.band[0]
+    area = 0.5 * (values[1:] + values[:-1]) * jnp.diff(off)
+    cum = jnp.concatenate([jnp.zeros((1,), dtype), jnp.cumsum(area)])
+    g = jnp.interp(jnp.asarray(x, dtype), off, cum)
+    idx = (k[None, :] - np.arange(n)[:, None] - k0).astype(np.int32)
+    table = g[idx]
+    return table[:, 1:] - table[:, :-1]
 
 
 def _band_values(theta, band):
@@ -438,7 +471,12 @@ def _normal_equations(u_flat, unravel, scale, profile, keep, fit: _FitData, tau_
     tables, tables_lin = jax.linearize(
         lambda uf: _fit_tables(_theta(uf, unravel, scale), fit), u_flat
     )
-    d_tables = jax.vmap(tables_lin)(tans)
+    if fit.band is None:
+        d_tables = jax.vmap(tables_lin)(tans)
+    else:
+        # Each band tangent forms a tangent of the whole overlap table (6,601 × 360):
+        # a few at a time, not all G + 1 at once (~0.5 GB on a 64-column strip).
+        d_tables = jax.lax.map(tables_lin, tans, batch_size=BAND_TANGENT_BATCH)
     dtype = u_flat.dtype
 
     def body(carry, xs):
@@ -929,7 +967,7 @@ def _fit_chart_float64(
     t_start_us: int | None = None,
     rows_per_label: int | None = 4,
     per_pixel: bool = True,
-    max_steps: int = 60,
+    max_steps: int = 100,
     fit_baseline: bool = True,
     from_data: bool = True,
     response_degree: int = 4,
@@ -947,7 +985,8 @@ def _fit_chart_float64(
     - `t_start_us`: sweep phase 0 (default: first trigger, else 0).
     - `rows_per_label`: rows of each patch used for the global fit (per column).
     - `per_pixel`: also estimate per-pixel threshold maps (all pixels).
-    - `max_steps`: Levenberg–Marquardt steps.
+    - `max_steps`: Levenberg–Marquardt steps per stage (100; 60 until the band
+      profile was fitted, whose stage took 45–55 steps on small charts).
     - `fit_baseline`: fit c (else kept).
     - `from_data`: start β and τx from :func:`initial_guess` instead of `init`'s.
     - `response_degree`: fit a smooth correction of the camera response,
@@ -982,8 +1021,8 @@ def _fit_chart_float64(
         # (Not with one threshold pair for all pixels: the band's shape then chases
         # the pixels' threshold spread.)
         fit_band = init.band_profile is None and per_pixel
-    band_fitted = fit_band
-    if fit_band and events.width > BAND_CROP_COLUMNS:
+    band_fitted, photoreceptor_fitted = fit_band, fit_photoreceptor
+    if fit_band and events.width > max(BAND_DIRECT_COLUMNS, BAND_CROP_COLUMNS):
         init = _band_from_strip(
             events, chart, init, t_start_us=t_start_us, rows_per_label=rows_per_label,
             max_steps=max_steps, fit_baseline=fit_baseline, from_data=from_data,
@@ -991,6 +1030,10 @@ def _fit_chart_float64(
             fit_photoreceptor=fit_photoreceptor, verbose=verbose,
         )  # fmt: skip
         fit_band = False
+        if fit_photoreceptor and not init.effects.photoreceptor_hz:
+            # The strip found no low-pass worth modelling: so is the whole chart's
+            # sensor (its fit would walk the cut-off from its start to none again).
+            fit_photoreceptor = False
     w = events.width
     rig = _with_column_offsets(init, w)
     if rig.column_offsets_us.shape[0] != w:
@@ -1190,14 +1233,17 @@ def _fit_chart_float64(
         pixels_used=int(data.mask.any(axis=1).sum()),
         seconds=time.perf_counter() - t0,
         psf_sigma_px=psf,
-        photoreceptor_fitted=fit_photoreceptor,
+        photoreceptor_fitted=photoreceptor_fitted,
         band_fitted=band_fitted,
     )
 
 
 def _band_from_strip(events: EventStream, chart: Scene, init: Rig, **kw) -> Rig:
     """`init` with the band profile of a calibration of the chart's middle
-    `BAND_CROP_COLUMNS` columns (all rows; `kw` as :func:`_fit_chart_float64`'s)."""
+    `BAND_CROP_COLUMNS` columns (all rows; `kw` as :func:`_fit_chart_float64`'s),
+    and its other global values as the whole chart's start: thresholds, c, D(λ),
+    the sweep's curvature and the photoreceptor's cut-off (τx and β are the whole
+    chart's: its initial guess)."""
     w = events.width
     x0 = (w - BAND_CROP_COLUMNS) // 2
     roi = (x0, 0, x0 + BAND_CROP_COLUMNS, events.height)
@@ -1213,9 +1259,20 @@ def _band_from_strip(events: EventStream, chart: Scene, init: Rig, **kw) -> Rig:
         **kw,
     )
     off, val = sub.rig.band_profile
+    release_free_memory()  # the strip's compiler memory, before the whole chart's
     if kw.get("verbose"):
         print(f"calibrate: band profile fitted on columns {roi[0]}-{roi[2] - 1}")
-    return init.with_band_profile({"offset_nm": list(off), "values": list(val)})
+    r = sub.rig
+    start = init.with_leaves(
+        threshold_on=r.threshold_on,
+        threshold_off=r.threshold_off,
+        baseline_rel=r.baseline_rel,
+        camera_response=r.camera_response,
+        sweep_curvature_nm=r.sweep_curvature_nm,
+    )
+    if kw.get("fit_photoreceptor", True):
+        start = start.replace_host(photoreceptor_hz=float(r.effects.photoreceptor_hz))
+    return start.with_band_profile({"offset_nm": list(off), "values": list(val)})
 
 
 def save_calibration(path, result: CalibrationResult, *, comment: str = "") -> dict:

@@ -54,9 +54,10 @@ def shouldered():
     """A 24x32 gray chart of 4 sweeps and a held-out TCS sweep, from a sensor whose
     band has a shoulder. Calibrated from the default rig, which has a Gaussian band:
     the band fitted (the default when the initial rig gives no profile), here on a
-    16-column strip first (`BAND_CROP_COLUMNS`, 64 by default: the path of a wide
-    sensor); and from a rig that gives the Gaussian as a sampled profile, which the
-    calibration keeps by default (a profile measured with a spectrometer)."""
+    16-column strip first (`BAND_CROP_COLUMNS`, 32 by default, on charts wider than
+    `BAND_DIRECT_COLUMNS`, 64: the path of a wide sensor); and from a rig that gives
+    the Gaussian as a sampled profile, which the calibration keeps by default (a
+    profile measured with a spectrometer)."""
     from evhsi_jax._calibrate import _fit
 
     true = ev.Rig.from_dict({"band_profile": _shouldered_band(17.5)})
@@ -68,6 +69,7 @@ def shouldered():
     truth = scene.truth_cube(true.grid)
     printed = io.StringIO()
     with pytest.MonkeyPatch.context() as m, contextlib.redirect_stdout(printed):
+        m.setattr(_fit, "BAND_DIRECT_COLUMNS", 16)
         m.setattr(_fit, "BAND_CROP_COLUMNS", 16)
         fitted = ev.calibrate(gray, chart, ev.Rig(), verbose=True)
     given = ev.Rig.from_dict({"band_profile": _shouldered_band(17.5, shoulder=0.0)})
