@@ -241,8 +241,12 @@ def test_cli_calibrate_writes_a_file_reconstruct_reads(tmp_path, capture):
         text=True,
     )
     assert out.returncode == 0, out.stderr
+    # The band profile: fitted (no band_profile in --init), said and written.
+    assert "band profile" in out.stdout and ": FWHM" in out.stdout
+    assert "fitted: FWHM" in out.stdout
     cfg = json.loads((tmp_path / "c.json").read_text())
     assert cfg["threshold_map"] == "c_thresholds.npz"
+    assert cfg["band_profile"] is not None and cfg["calibration"]["band"] == "profile fitted"
     cal = ev.load_calibration(tmp_path / "c.json")
     on = cal.threshold_on
     assert on.shape == (H, W) and cal.hot_pixels.shape == (H, W)
