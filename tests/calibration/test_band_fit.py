@@ -103,3 +103,28 @@ def test_a_given_band_profile_is_kept_by_default(shouldered):
     *_, kept, given, _ = shouldered
     assert kept.rig.band_profile == given.band_profile
     assert kept.calibration.report["band"] == "kept from the initial rig"
+
+
+@pytest.mark.parametrize("channels", [72, 71], ids=["on the grid", "off the grid"])
+def test_the_fits_gathered_overlap_table_is_the_interpolated_one(channels):
+    """`_fit._band_overlap` gathers the table from the profile's cumulative integral
+    at its distinct offsets when the fine edges lie on the table's grid of λc (the
+    default rig), and falls back to one interpolation per entry when they do not."""
+    from evhsi_jax._calibrate import _fit
+    from evhsi_jax._model import band_overlap
+
+    with jax.enable_x64(True):
+        rig = ev.Rig(channels=channels).astype(jnp.float64)
+        ov = band_overlap(rig)
+        k = (np.asarray(rig.grid.fine_edges_nm) - ov.lo_nm) / ov.step_nm
+        assert np.allclose(k, np.round(k), atol=1e-6) == (channels == 72)
+        band = _fit._band_start(rig, jnp.float64)
+        fit = _fit._FitData(rig, None, (), None, None, ov.values, band,
+                            jnp.ones(()), ov.lo_nm, ov.step_nm, True, ())  # fmt: skip
+        vals = _fit._band_values(0.1 * jnp.sin(jnp.arange(_fit.BAND_KNOTS, dtype=float)), band)
+        centres = ov.lo_nm + ov.step_nm * jnp.arange(ov.values.shape[0], dtype=jnp.float64)
+        want = sampled_profile_overlap(
+            band[0], vals, jnp.asarray(rig.grid.fine_edges_nm), centres
+        )
+        got = _fit._band_overlap(vals, fit)
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-12 * float(jnp.max(want)))
