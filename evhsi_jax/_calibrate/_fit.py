@@ -79,6 +79,7 @@ from .._model import (
     Rig,
     Scene,
     band_overlap,
+    fwhm_to_sigma,
     lookup,
     sampled_profile_overlap,
 )
@@ -300,7 +301,10 @@ def _fit_tables(params, fit: _FitData):
     overlap = fit.overlap
     if "band" in params:
         theta = params["band"] * fit.band_gate
-        overlap = _band_overlap(_band_values(theta, fit.band), fit)
+        overlap = sampled_profile_overlap(
+            fit.band[0], _band_values(theta, fit.band), r.grid.fine_edges_nm,
+            fit.overlap_lo_nm, fit.overlap_step_nm, overlap.shape[0],
+        )  # fmt: skip
     traces = (
         BandTable(fit.fixed_traces, fit.overlap_lo_nm, fit.overlap_step_nm)
         if fit.fixed_traces is not None
@@ -326,33 +330,6 @@ def _block_residuals(params, tables, block, keep, profile, fit: _FitData):
     return res * keep[:, None]
 
 
-def _band_overlap(values, fit: _FitData):
-    """The overlap table of the band sampled as `values` at `fit.band`'s offsets
-    (:func:`sampled_profile_overlap`, 6,601 × 360 on the default rig). When the
-    fine edges lie on the table's grid of λc (the default rig's: 1 nm and 0.1 nm),
-    every entry's offset λ − λc is a multiple of the table step, so the profile's
-    cumulative integral is interpolated once per distinct offset (~10⁴) and the
-    table gathered from those, instead of one search per entry: the fit forms
-    this table and its tangent for every parameter at every step."""
-    lo, step, n = fit.overlap_lo_nm, fit.overlap_step_nm, fit.overlap.shape[0]
-    edges = np.asarray(fit.rig.grid.fine_edges_nm, np.float64)
-    k = (edges - lo) / step
-    dtype = values.dtype
-    if not np.allclose(k, np.round(k), rtol=0.0, atol=1e-6):
-        centres = lo + step * jnp.arange(n, dtype=dtype)
-        return sampled_profile_overlap(fit.band[0], values, jnp.asarray(edges, dtype), centres)
-    k = np.round(k).astype(np.int64)
-    k0 = int(k[0]) - (n - 1)  # the smallest k_e - i
-    x = step * np.arange(k0, int(k[-1]) + 1)
-    off = fit.band[0]
-    area = 0.5 * (values[1:] + values[:-1]) * jnp.diff(off)
-    cum = jnp.concatenate([jnp.zeros((1,), dtype), jnp.cumsum(area)])
-    g = jnp.interp(jnp.asarray(x, dtype), off, cum)
-    idx = (k[None, :] - np.arange(n)[:, None] - k0).astype(np.int32)
-    table = g[idx]
-    return table[:, 1:] - table[:, :-1]
-
-
 def _band_values(theta, band):
     """The band profile's samples at its offsets for the correction `theta` (log
     units at the knots, constant beyond the outer ones): the initial profile times
@@ -368,8 +345,7 @@ def _band_start(rig: Rig, dtype):
     fwhm = float(rig.fwhm_nm)
     offsets = np.linspace(-3.0 * fwhm, 3.0 * fwhm, BAND_SAMPLES)
     if rig.band_profile is None:
-        sigma = fwhm / (2.0 * np.sqrt(2.0 * np.log(2.0)))
-        t0 = np.exp(-0.5 * (offsets / sigma) ** 2)
+        t0 = np.exp(-0.5 * (offsets / fwhm_to_sigma(fwhm)) ** 2)
     else:
         off, val = (np.asarray(v, np.float64) for v in rig.band_profile)
         t0 = np.interp(offsets, off, val, left=0.0, right=0.0)
@@ -1122,7 +1098,7 @@ def _fit_chart_float64(
         # The band's shape is fitted in the last stage only: with one threshold pair
         # the first stage's misfit is the pixels' threshold spread, which the band's
         # shape then chased (74 steps on a 32x48 chart, against 31 without it).
-        gate = jnp.asarray(float(last or band is None), dtype)
+        gate = jnp.asarray(float(last), dtype)
         fit = eqx.tree_at(lambda f: f.band_gate, fit, gate)
         stage = (u, scale, jnp.asarray(profile), keep, fit, max_steps, bool(verbose),
                  jnp.asarray(LM_TOL[int(last)], dtype))  # fmt: skip

@@ -142,16 +142,33 @@ def _profile_overlap(profile, edges, centres):
     return g[:, 1:] - g[:, :-1]
 
 
-def sampled_profile_overlap(offsets_nm, values, edges, centres):
-    """:func:`_profile_overlap` with the profile's samples as arrays that may be
+def sampled_profile_overlap(offsets_nm, values, edges_nm, lo_nm, step_nm, n):
+    """:func:`_profile_overlap` over the table's λc grid (`n` centres from `lo_nm` in
+    steps of `step_nm`), with the profile's samples `values` an array that may be
     traced (the calibration fits them, `fit_band`): the same piecewise-linear
-    profile's cumulative integral, in `values`' dtype, differenced over each
-    sub-bin. `offsets_nm` are fixed."""
-    off = jnp.asarray(offsets_nm, values.dtype)
+    profile's cumulative integral, in `values`' dtype, differenced over each sub-bin.
+    `offsets_nm` and the sub-bin edges `edges_nm` are fixed (host arrays).
+
+    When the edges lie on the λc grid (the default rig's: 1 nm and 0.1 nm), every
+    entry's offset λ − λc is a multiple of the step, so the cumulative integral is
+    interpolated once per distinct offset (~10⁴) and the table gathered from those
+    instead of searched per entry (3.7× faster in float64; the calibration forms this
+    table and its tangent for every parameter at every step)."""
+    dtype = values.dtype
+    off = jnp.asarray(offsets_nm, dtype)
     area = 0.5 * (values[1:] + values[:-1]) * jnp.diff(off)
-    cum = jnp.concatenate([jnp.zeros((1,), values.dtype), jnp.cumsum(area)])
-    g = jnp.interp(edges[None, :] - centres[:, None], off, cum)
-    return g[:, 1:] - g[:, :-1]
+    cum = jnp.concatenate([jnp.zeros((1,), dtype), jnp.cumsum(area)])
+    edges = np.asarray(edges_nm, np.float64)
+    k = (edges - lo_nm) / step_nm
+    if not np.allclose(k, np.round(k), rtol=0.0, atol=1e-6):
+        centres = lo_nm + step_nm * jnp.arange(n, dtype=dtype)
+        g = jnp.interp(jnp.asarray(edges, dtype)[None, :] - centres[:, None], off, cum)
+        return g[:, 1:] - g[:, :-1]
+    k = np.round(k).astype(np.int64)
+    k0 = int(k[0]) - (n - 1)  # the smallest k_e - i
+    g = jnp.interp(jnp.asarray(step_nm * np.arange(k0, int(k[-1]) + 1), dtype), off, cum)
+    table = g[(k[None, :] - np.arange(n)[:, None] - k0).astype(np.int32)]
+    return table[:, 1:] - table[:, :-1]
 
 
 def _gaussian_overlap(fwhm_nm, edges, centres):

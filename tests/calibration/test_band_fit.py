@@ -33,10 +33,10 @@ def test_the_traced_overlap_is_the_sampled_profiles():
     prof = _shouldered_band(17.5)
     off, val = np.asarray(prof["offset_nm"]), np.asarray(prof["values"])
     with jax.enable_x64(True):
-        edges = jnp.asarray(np.arange(390.0, 771.0, 1.0))
+        edges = np.arange(390.0, 771.0, 1.0)
         centres = jnp.asarray(300.0 + TABLE_STEP_NM * np.arange(4000))
-        want = _profile_overlap((tuple(off), tuple(val)), edges, centres)
-        got = sampled_profile_overlap(off, jnp.asarray(val), edges, centres)
+        want = _profile_overlap((tuple(off), tuple(val)), jnp.asarray(edges), centres)
+        got = sampled_profile_overlap(off, jnp.asarray(val), edges, 300.0, TABLE_STEP_NM, 4000)
         np.testing.assert_allclose(got, want, atol=1e-12 * float(jnp.max(want)))
 
 
@@ -107,9 +107,10 @@ def test_a_given_band_profile_is_kept_by_default(shouldered):
 
 @pytest.mark.parametrize("channels", [72, 71], ids=["on the grid", "off the grid"])
 def test_the_fits_gathered_overlap_table_is_the_interpolated_one(channels):
-    """`_fit._band_overlap` gathers the table from the profile's cumulative integral
-    at its distinct offsets when the fine edges lie on the table's grid of λc (the
-    default rig), and falls back to one interpolation per entry when they do not."""
+    """`sampled_profile_overlap` gathers the table from the profile's cumulative
+    integral at its distinct offsets when the fine edges lie on the table's grid of
+    λc (the default rig), and falls back to one interpolation per entry when they do
+    not; either way the table of the fit's band is that of the sampled profile."""
     from evhsi_jax._calibrate import _fit
     from evhsi_jax._model import band_overlap
 
@@ -119,12 +120,13 @@ def test_the_fits_gathered_overlap_table_is_the_interpolated_one(channels):
         k = (np.asarray(rig.grid.fine_edges_nm) - ov.lo_nm) / ov.step_nm
         assert np.allclose(k, np.round(k), atol=1e-6) == (channels == 72)
         band = _fit._band_start(rig, jnp.float64)
-        fit = _fit._FitData(rig, None, (), None, None, ov.values, band,
-                            jnp.ones(()), ov.lo_nm, ov.step_nm, True, ())  # fmt: skip
-        vals = _fit._band_values(0.1 * jnp.sin(jnp.arange(_fit.BAND_KNOTS, dtype=float)), band)
-        centres = ov.lo_nm + ov.step_nm * jnp.arange(ov.values.shape[0], dtype=jnp.float64)
-        want = sampled_profile_overlap(
-            band[0], vals, jnp.asarray(rig.grid.fine_edges_nm), centres
+        theta = 0.1 * jnp.sin(jnp.arange(_fit.BAND_KNOTS, dtype=float))
+        vals = _fit._band_values(theta, band)
+        n = ov.values.shape[0]
+        centres = ov.lo_nm + ov.step_nm * jnp.arange(n, dtype=jnp.float64)
+        prof = (tuple(np.asarray(band[0])), tuple(np.asarray(vals)))
+        want = _profile_overlap(prof, jnp.asarray(rig.grid.fine_edges_nm), centres)
+        got = sampled_profile_overlap(
+            band[0], vals, rig.grid.fine_edges_nm, ov.lo_nm, ov.step_nm, n
         )
-        got = _fit._band_overlap(vals, fit)
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-12 * float(jnp.max(want)))
