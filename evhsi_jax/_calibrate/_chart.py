@@ -181,7 +181,9 @@ def sweep_first_events(data: ChartData, period_us: float) -> np.ndarray:
     return first & data.mask
 
 
-def spectral_traces(rig: Rig, spectra, overlap: BandTable | None = None) -> BandTable:
+def spectral_traces(
+    rig: Rig, spectra, overlap: BandTable | None = None, product=None
+) -> BandTable:
     """Intensity above c of each chart spectrum vs band centre: `(n_λ, S)` table.
 
     The chart's few spectra are known, so their traces over λc are tabulated once (the
@@ -190,6 +192,9 @@ def spectral_traces(rig: Rig, spectra, overlap: BandTable | None = None) -> Band
     D and E through the band table. `overlap`: the rig's :func:`band_overlap`, when the
     caller keeps the band fixed and has it already (the joint fit: it is most of the
     cost otherwise); then D and E are still differentiable, the FWHM is not.
+    `product`: instead of the table, a function `W ↦ overlap @ W` (`W`: `(F, C)`)
+    — the fit of a band profile (`sampled_profile_product`), which never forms the
+    table; `overlap` then only gives the λc grid (`lo_nm`, `step_nm`).
     """
     if overlap is None:
         table = band_table(rig)
@@ -199,6 +204,11 @@ def spectral_traces(rig: Rig, spectra, overlap: BandTable | None = None) -> Band
             table.step_nm,
         )
     weight = rig.camera_response * rig.lamp
+    if product is not None:
+        weighted = weight[:, None] * jnp.asarray(spectra, weight.dtype).T
+        both = product(jnp.concatenate([weight[:, None], weighted], axis=1))
+        gain = 1.0 / jnp.max(both[:, 0])
+        return BandTable(gain * both[:, 1:], overlap.lo_nm, overlap.step_nm)
     gain = 1.0 / jnp.max(overlap.values @ weight)
     weighted = weight[:, None] * jnp.asarray(spectra, overlap.values.dtype).T
     return BandTable(gain * (overlap.values @ weighted), overlap.lo_nm, overlap.step_nm)

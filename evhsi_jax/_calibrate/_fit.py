@@ -81,7 +81,7 @@ from .._model import (
     band_overlap,
     fwhm_to_sigma,
     lookup,
-    sampled_profile_overlap,
+    sampled_profile_product,
 )
 from .._reconstruct import lit_interval_us, noise_model, screen_events
 from ._chart import (
@@ -155,7 +155,6 @@ BAND_FLOOR = 1e-12  # the initial profile's floor (of its peak) under the correc
 #: "The band profile").
 BAND_DIRECT_COLUMNS = 64
 BAND_CROP_COLUMNS = 32
-BAND_TANGENT_BATCH = 4  # tangents of the band's overlap table formed at once
 BAND_SMOOTH_WEIGHT = 1.0
 BAND_RIDGE_WEIGHT = 0.01
 BAND_SHIFT_WEIGHT = 1.0  # per nm of the centroid's move
@@ -298,19 +297,24 @@ def _fit_tables(params, fit: _FitData):
     log levels when the rig has a low-pass; else an empty array) at `params`: computed
     once per evaluation and shared by every block."""
     r = _fit_rig(params, fit)
-    overlap = fit.overlap
+    overlap = BandTable(fit.overlap, fit.overlap_lo_nm, fit.overlap_step_nm)
+    product = None
     if "band" in params:
+        # The traces are the band's overlap table times the weighted spectra: formed
+        # without the table (its tangent along each band parameter was most of a
+        # step's cost on a strip; see sampled_profile_product).
         theta = params["band"] * fit.band_gate
-        overlap = sampled_profile_overlap(
-            fit.band[0], _band_values(theta, fit.band), r.grid.fine_edges_nm,
-            fit.overlap_lo_nm, fit.overlap_step_nm, overlap.shape[0],
-        )  # fmt: skip
+
+        def product(weights):
+            return sampled_profile_product(
+                fit.band[0], _band_values(theta, fit.band), r.grid.fine_edges_nm,
+                fit.overlap_lo_nm, fit.overlap_step_nm, fit.overlap.shape[0], weights,
+            )  # fmt: skip
+
     traces = (
         BandTable(fit.fixed_traces, fit.overlap_lo_nm, fit.overlap_step_nm)
         if fit.fixed_traces is not None
-        else spectral_traces(
-            r, fit.spectra, BandTable(overlap, fit.overlap_lo_nm, fit.overlap_step_nm)
-        )
+        else spectral_traces(r, fit.spectra, overlap, product)
     )
     if "pr" in params or r.effects.photoreceptor_hz > 0:
         # (a fitted cut-off: the rig's static one is the reference)
@@ -447,12 +451,7 @@ def _normal_equations(u_flat, unravel, scale, profile, keep, fit: _FitData, tau_
     tables, tables_lin = jax.linearize(
         lambda uf: _fit_tables(_theta(uf, unravel, scale), fit), u_flat
     )
-    if fit.band is None:
-        d_tables = jax.vmap(tables_lin)(tans)
-    else:
-        # Each band tangent forms a tangent of the whole overlap table (6,601 × 360):
-        # a few at a time, not all G + 1 at once (~0.5 GB on a 64-column strip).
-        d_tables = jax.lax.map(tables_lin, tans, batch_size=BAND_TANGENT_BATCH)
+    d_tables = jax.vmap(tables_lin)(tans)
     dtype = u_flat.dtype
 
     def body(carry, xs):
@@ -952,6 +951,7 @@ def _fit_chart_float64(
     fit_band: bool | None = None,
     verbose: bool = False,
     maps: bool = True,
+    noise: bool = True,
 ) -> CalibrationResult:
     """Fit thresholds, β, c and per-column τx to a chart capture (then per-pixel maps).
 
@@ -987,6 +987,9 @@ def _fit_chart_float64(
       a spectrometer).
     - `maps`: with `per_pixel`, also the per-pixel threshold maps and the PSF
       (False: the profiled stage only, as for the band's strip).
+    - `noise`: measure the sensor's noise (per-crossing threshold noise, timestamp
+      jitter, background rate; False: zeros, as for the band's strip, whose rig
+      only gives the band and a start).
 
     **Returns:** a :class:`CalibrationResult`.
     """
@@ -1173,8 +1176,12 @@ def _fit_chart_float64(
             threshold_on=jnp.asarray(np.nanmean(c_on), dtype),
             threshold_off=jnp.asarray(np.nanmean(c_off), dtype),
         )
-    noise = measure_noise(fitted, data, res_final)
-    bg_rate = _background_rate(captured, hot, fitted, t_start_us)
+    if noise:
+        measured = measure_noise(fitted, data, res_final)
+        bg_rate = _background_rate(captured, hot, fitted, t_start_us)
+    else:
+        measured = {"threshold_noise": 0.0, "timestamp_jitter_us": 0.0}
+        bg_rate = 0.0
     if rms > MAX_RMS_RESIDUAL:
         raise ValueError(
             f"the calibration does not fit its data: RMS residual {rms:.2f} thresholds "
@@ -1190,8 +1197,8 @@ def _fit_chart_float64(
             "the limit)"
         )
     fitted = fitted.replace_host(
-        threshold_noise=noise["threshold_noise"],
-        timestamp_jitter_us=noise["timestamp_jitter_us"],
+        threshold_noise=measured["threshold_noise"],
+        timestamp_jitter_us=measured["timestamp_jitter_us"],
         noise_rate_hz=bg_rate,
         **({} if psf is None else {"psf_sigma_px": psf}),
     )
@@ -1232,6 +1239,7 @@ def _band_from_strip(events: EventStream, chart: Scene, init: Rig, **kw) -> Rig:
         per_pixel=True,
         fit_band=True,
         maps=False,
+        noise=False,
         **kw,
     )
     off, val = sub.rig.band_profile

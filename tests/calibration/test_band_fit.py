@@ -15,6 +15,7 @@ from evhsi_jax._model._illumination import (
     TABLE_STEP_NM,
     _profile_overlap,
     sampled_profile_overlap,
+    sampled_profile_product,
 )
 
 
@@ -130,3 +131,43 @@ def test_the_fits_gathered_overlap_table_is_the_interpolated_one(channels):
             band[0], vals, rig.grid.fine_edges_nm, ov.lo_nm, ov.step_nm, n
         )
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-12 * float(jnp.max(want)))
+
+
+@pytest.mark.parametrize(
+    "edges, n",
+    [
+        (np.arange(390.0, 771.0, 1.0), 4000),  # on the grid, 10 steps apart
+        (np.arange(390.0, 771.0, 1.0), 4003),  # n not a multiple of the spacing
+        (np.arange(390.0, 771.0, 0.5), 4000),  # 5 steps apart
+        (np.arange(390.05, 771.0, 1.0), 4000),  # off the grid: the table's product
+        (np.concatenate([[388.5], np.arange(390.0, 771.0, 1.0)]), 4000),  # uneven
+    ],
+    ids=["1 nm", "uneven n", "0.5 nm", "off the grid", "uneven edges"],
+)
+def test_the_fits_product_is_the_table_times_the_weights(edges, n):
+    """`sampled_profile_product` (the band fit's traces, by convolution, without the
+    table) equals the sampled profile's overlap table times the weights, and so do
+    its derivatives along the profile's samples."""
+    prof = _shouldered_band(17.5)
+    off, val = np.asarray(prof["offset_nm"]), np.asarray(prof["values"])
+    rng = np.random.default_rng(0)
+    with jax.enable_x64(True):
+        w = jnp.asarray(rng.random((edges.size - 1, 3)))
+        v = jnp.asarray(val)
+
+        def table(v):
+            return sampled_profile_overlap(off, v, edges, 300.0, TABLE_STEP_NM, n) @ w
+
+        def product(v):
+            return sampled_profile_product(off, v, edges, 300.0, TABLE_STEP_NM, n, w)
+
+        want, got = table(v), product(v)
+        assert got.shape == (n, 3)
+        scale = float(jnp.max(jnp.abs(want)))
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-12 * scale)
+        dv = jnp.asarray(rng.standard_normal(val.size))
+        d_want = jax.jvp(table, (v,), (dv,))[1]
+        d_got = jax.jvp(product, (v,), (dv,))[1]
+        np.testing.assert_allclose(
+            d_got, d_want, rtol=0, atol=1e-12 * float(jnp.max(jnp.abs(d_want)))
+        )
