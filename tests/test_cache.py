@@ -29,6 +29,8 @@ def cache_on(tmp_path, monkeypatch):
     new process would have)."""
     monkeypatch.setattr(_cache, "_ENABLED", [tmp_path])
     monkeypatch.setattr(_cache, "_EXPORTED", {})
+    monkeypatch.setattr(_cache, "_COMPILED", {})
+    monkeypatch.setattr(_cache, "_PREPARING", {})
     TRACES.clear()
     return tmp_path / "exported"
 
@@ -82,6 +84,41 @@ def test_key_separates_what_the_trace_depends_on(cache_on, change):
         np.asarray(got), np.asarray(eqx.filter_jit(kernel)(*args))
     )
     assert len(list(cache_on.glob("k-*.bin"))) == 2
+
+
+def test_a_program_prepared_in_the_background_is_the_one_called(cache_on):
+    """`prepare_exported` compiles in a background thread what the same call of
+    `call_exported` then runs: the same results, one trace, and no second
+    compilation; the float64 setting of the caller holds in the thread. A failure
+    there is only a missed start: `call_exported` falls back as usual."""
+    with jax.enable_x64(True):
+        args = jax.tree.map(
+            lambda a: jnp.asarray(a, jnp.float64) if eqx.is_array(a) else a, _args()
+        )
+        want = np.asarray(eqx.filter_jit(kernel)(*args))
+        TRACES.clear()
+        _cache.prepare_exported("p", kernel, args)
+        _cache.prepare_exported("p", kernel, args)  # already under way: nothing more
+        assert len(_cache._PREPARING) == 1
+        got = _cache.call_exported("p", kernel, args)
+        assert got.dtype == jnp.float64
+        np.testing.assert_array_equal(np.asarray(got), want)
+        assert TRACES == ["tanh"] and len(_cache._COMPILED) == 1
+        assert not _cache._PREPARING
+        # other values, same shapes: the compiled program, no new trace
+        other = (args[0] + 1.0, *args[1:])
+        np.testing.assert_array_equal(
+            np.asarray(_cache.call_exported("p", kernel, other)),
+            np.asarray(eqx.filter_jit(kernel)(*other)),
+        )
+        assert TRACES == ["tanh"]
+
+    def broken(*a):
+        raise RuntimeError("no")
+
+    _cache.prepare_exported("b", broken, _args())
+    with pytest.raises(RuntimeError, match="no"):  # the kernel's own error, not lost
+        _cache.call_exported("b", broken, _args())
 
 
 def test_damaged_file_is_replaced(cache_on):

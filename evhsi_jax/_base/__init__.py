@@ -7,6 +7,7 @@ from . import _numba as numba_kernels  # noqa: F401  (compiled-kernel switch)
 from . import _shard as shard  # noqa: F401  (the mesh plumbing as a namespace)
 from ._cache import call_exported as call_exported
 from ._cache import enable_compilation_cache as enable_compilation_cache
+from ._cache import prepare_exported as prepare_exported
 from ._limits import check_fits as check_fits
 from ._limits import release_free_memory as release_free_memory
 from ._metrics import evaluate as evaluate

@@ -33,7 +33,7 @@ import jax.tree_util as jtu
 
 from ._storage import atomic_write
 
-__all__ = ["enable_compilation_cache", "cache_dir", "call_exported"]
+__all__ = ["enable_compilation_cache", "cache_dir", "call_exported", "prepare_exported"]
 
 _ENABLED: list[Path] = []
 
@@ -116,6 +116,75 @@ def call_exported(name: str, fn, args: tuple, *, static: tuple = (), mesh=None):
     folder = _ENABLED[0] / "exported" if _ENABLED else None
     if folder is None or jax.process_count() > 1 or not _serialization_available():
         return fn(*args)
+    key, leaves, specs, treedef, kept = _signature(name, fn, args, static, mesh)
+    pending = _PREPARING.pop(key, None)
+    if pending is not None:  # compiled in the background (prepare_exported)
+        try:
+            compiled = pending.result()
+        except Exception:  # never a reason to fail: compiled here instead
+            compiled = None
+        if compiled is not None:
+            while len(_COMPILED) >= _MAX_COMPILED:  # the oldest out (dicts keep order)
+                _COMPILED.pop(next(iter(_COMPILED)))
+            _COMPILED[key] = compiled
+    if key in _COMPILED:
+        return _COMPILED[key](*leaves)
+    if key not in _EXPORTED:  # None: export failed, run `fn` itself in this process
+        _EXPORTED[key] = _load_or_export(folder / f"{key}.bin", fn, treedef, kept, specs)
+    exp = _EXPORTED[key]
+    return fn(*args) if exp is None else exp.call(*leaves)
+
+
+def prepare_exported(name: str, fn, args: tuple, *, static: tuple = ()) -> None:
+    """Trace and compile what `call_exported(name, fn, args, static=static)` will
+    run, in a background thread, and return at once; that call then waits for it and
+    runs the compiled program. `args` only need the call's structure, shapes and
+    dtypes (and its non-array leaves).
+
+    XLA compiles one program on one core: a fit that needs several programs (the
+    calibration's scale, solver and residuals) compiles the next one while the
+    current one compiles and runs. Only with the cache on (the traced program is
+    kept on disk, so a second process loads both) and on one device; the thread sees
+    this thread's float64 setting. Any failure is left for `call_exported`, which
+    then compiles as usual.
+    """
+    folder = _ENABLED[0] / "exported" if _ENABLED else None
+    if folder is None or jax.process_count() > 1 or not _serialization_available():
+        return
+    key, _, specs, treedef, kept = _signature(name, fn, args, static, None)
+    if key in _COMPILED or key in _PREPARING:
+        return
+    x64 = bool(jax.config.jax_enable_x64)  # (a thread-local setting)
+
+    def compile_it():
+        with jax.enable_x64(x64):
+            if key not in _EXPORTED:
+                path = folder / f"{key}.bin"
+                _EXPORTED[key] = _load_or_export(path, fn, treedef, kept, specs)
+            exp = _EXPORTED[key]
+            return None if exp is None else jax.jit(exp.call).lower(*specs).compile()
+
+    _PREPARING[key] = _background().submit(compile_it)
+
+
+_COMPILED: dict[str, object] = {}  # key -> compiled program (prepare_exported)
+_MAX_COMPILED = 8  # (a calibration prepares two programs per fit)
+_PREPARING: dict = {}  # key -> Future of the compiled program
+_POOL: list = []
+
+
+def _background():
+    """The one background thread that compiles (created on first use)."""
+    if not _POOL:
+        from concurrent.futures import ThreadPoolExecutor
+
+        _POOL.append(ThreadPoolExecutor(max_workers=1, thread_name_prefix="evhsi-compile"))
+    return _POOL[0]
+
+
+def _signature(name, fn, args, static, mesh):
+    """`call_exported`'s key for `args` and what its program is called with: `(key,
+    array leaves, their specs, the arguments' treedef, the non-array leaves)`."""
     # Flattened by hand: `eqx.partition` rebuilds each node around placeholder leaves,
     # which a registered dataclass's type-checked __init__ may refuse.
     every, treedef = jtu.tree_flatten(args)
@@ -156,11 +225,7 @@ def call_exported(name: str, fn, args: tuple, *, static: tuple = (), mesh=None):
         _source_digest(),
     )
     key = f"{name}-{hashlib.sha256(repr(parts).encode()).hexdigest()[:32]}"
-    if key not in _EXPORTED:  # None: export failed, run `fn` itself in this process
-        path = folder / f"{key}.bin"
-        _EXPORTED[key] = _load_or_export(path, fn, treedef, kept, specs)
-    exp = _EXPORTED[key]
-    return fn(*args) if exp is None else exp.call(*leaves)
+    return key, leaves, specs, treedef, kept
 
 
 def _load_or_export(path: Path, fn, treedef, kept, specs):

@@ -71,7 +71,7 @@ import lineax as lx
 import numpy as np
 import optimistix as optx
 
-from .._base import call_exported, release_free_memory
+from .._base import call_exported, prepare_exported, release_free_memory
 from .._model import (
     BandTable,
     Calibration,
@@ -1083,6 +1083,17 @@ def _fit_chart_float64(
     def sum_sq(res):
         return float(np.sum(np.square(res, dtype=np.float64)))
 
+    if not verbose:
+        # The solver's and the residuals' programs compile in the background while
+        # the scale's compiles and runs (each compilation keeps one core busy; a first
+        # run spent ~20 s of a 48x1280 chart's calibration compiling these, twice
+        # with the band's strip). Only their shapes matter: p0 stands for u and s.
+        tol0 = jnp.asarray(LM_TOL[0], dtype)
+        prepare_exported("calibrate_lm", _lm_stage, (
+            p0, p0, jnp.asarray(False), keep, fit, max_steps, False, tol0))  # fmt: skip
+        prepare_exported(
+            "calibrate_residuals", _fit_residuals, (p0, jnp.asarray(False), keep, fit)
+        )
     # Jacobi scaling by change of variables (u = θ·s, s = column norms of the Jacobian at
     # the start): the Gauss–Newton matrix then has a unit diagonal and is "identity plus
     # the rank-4 coupling of the global parameters", so the matrix-free CG inside each
