@@ -752,6 +752,30 @@ def _background_rate(events, hot, rig, t_start_us) -> float:
     return max(n_out, 0) / (n_pix * max(dark, 1.0) * 1e-6)
 
 
+@eqx.filter_jit
+def _model_crossings(rig: Rig, spectra):
+    """The exact pixel model's events along λc for each chart spectrum at `rig`
+    (:func:`initial_guess`): `(fired, λ of the crossing)`, each `(λ samples, S)`, on a
+    0.25 nm grid over the band table's range. One compiled program (as eager
+    operations, ~60 small compilations: ~2 s of a first run)."""
+    from .._model import exact_events_scan
+
+    traces = spectral_traces(rig, spectra)
+    n_tab = traces.values.shape[0]
+    dtype = traces.values.dtype
+    lam = np.arange(traces.lo_nm, traces.lo_nm + traces.step_nm * (n_tab - 1), 0.25)
+    lam = jnp.asarray(lam, dtype)
+    a = lookup(traces, lam)
+    log_i = jnp.log(jnp.maximum(a, 0.0) + rig.baseline_level)  # λ plays time's role
+    eta_nm = rig.refractory_us * rig.beta_nm_per_rad * rig.omega_rad_per_us
+    s = spectra.shape[0]
+    (fired, tc, _), _ = exact_events_scan(
+        log_i, lam, jnp.full(s, rig.threshold_on, dtype),
+        jnp.full(s, rig.threshold_off, dtype), jnp.asarray(eta_nm, dtype),
+    )  # fmt: skip
+    return fired, tc
+
+
 def initial_guess(data: ChartData, rig: Rig) -> Rig:
     """Column offsets and β from the data: first and last event time per column.
 
@@ -762,28 +786,12 @@ def initial_guess(data: ChartData, rig: Rig) -> Rig:
     $β = (λ_{off} - λ_{on}) / (ω\\,\\mathrm{median}(t_{off} - t_{on}))$ and per column
     $τ_x = (λ_{on} - λ_0)/(βω) - t_{on}$ (medians over the column's pixels).
     """
-    from .._model import exact_events_scan
-
-    traces = spectral_traces(rig, data.spectra)
-    step_nm = 0.25
-    n_tab = traces.values.shape[0]
-    lam = np.arange(traces.lo_nm, traces.lo_nm + traces.step_nm * (n_tab - 1), step_nm)
-    a = np.asarray(lookup(traces, jnp.asarray(lam, traces.values.dtype)), np.float64)
-    base = float(rig.baseline_level)
     uniq = np.arange(data.spectra.shape[0])
     inv = data.spectrum
-    log_i = np.log(np.maximum(a, 0.0) + base)  # (λ, S): λ plays the role of time
+    fired, tc = (np.asarray(a) for a in _model_crossings(rig, data.spectra))
+    tc = tc.astype(np.float64)
     omega = float(rig.omega_rad_per_us)
-    eta_nm = float(rig.refractory_us) * float(rig.beta_nm_per_rad) * omega
     dtype = rig.fwhm_nm.dtype
-    (fired, tc, _), _ = exact_events_scan(
-        jnp.asarray(log_i, dtype),
-        jnp.asarray(lam, dtype),
-        jnp.full(uniq.shape[0], rig.threshold_on, dtype),
-        jnp.full(uniq.shape[0], rig.threshold_off, dtype),
-        jnp.asarray(eta_nm, dtype),
-    )
-    fired, tc = np.asarray(fired), np.asarray(tc, np.float64)
     any_ev = fired.any(axis=0)
     first_i = np.argmax(fired, axis=0)
     last_i = fired.shape[0] - 1 - np.argmax(fired[::-1], axis=0)
