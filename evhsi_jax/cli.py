@@ -645,12 +645,15 @@ def cmd_calibrate(args):
         )
     )
     if rig.band_profile is None:
-        band = f"Gaussian, FWHM {float(rig.fwhm_nm):.2f} nm (kept from --init)"
+        band = f"Gaussian, FWHM {float(rig.fwhm_nm):.2f} nm (kept from --init" + (
+            ": its fit did not converge)" if res.band_unresolved else ")"
+        )
     else:
         off, val = (np.asarray(v, np.float64) for v in rig.band_profile)
         above = off[val >= 0.5]
         band = (
-            f"{'fitted' if res.band_fitted else 'kept from --init'}: FWHM "
+            f"{'fitted' if res.band_fitted else 'kept from --init'}"
+            f"{' (its fit did not converge)' if res.band_unresolved else ''}: FWHM "
             f"{above[-1] - above[0]:.2f} nm, peak at {off[np.argmax(val)]:+.2f} nm"
         )
     print(f"{'band profile':18s} {'':>12s} {band}")

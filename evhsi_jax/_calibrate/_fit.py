@@ -148,11 +148,13 @@ BAND_FLOOR = 1e-12  # the initial profile's floor (of its peak) under the correc
 #: A chart wider than `BAND_DIRECT_COLUMNS` has its band fitted on its middle
 #: `BAND_CROP_COLUMNS` columns first (a whole calibration of that strip); the whole
 #: chart is then fitted with that band kept and the strip's other global values as
-#: its start. The band's 17 parameters more than double the cost of each step over
-#: all columns, and its fit needs more steps (a 48x1280 chart's did not converge in
-#: 60). A 32-column strip calibrated a 48x1280 chart in 61.8 / 34.6 s (first /
-#: second process), a 64-column one in 68.5 / 43.5 s (experiments/PERFORMANCE_LOG.md,
-#: "The band profile").
+#: its start. Over all columns the band's fit needs many more steps: a 48x1280
+#: chart's profiled stage took 81 (2026-11-28, with the band's traces by
+#: convolution and the noise-aware trust region; it had not converged in 60 before),
+#: 98 steps in all against the strip path's 22 (319 s in a development run on a
+#: loaded machine, verbose, against ~50 s). A 64-column strip took
+#: 68.5 / 43.5 s against the 32-column one's 61.8 / 34.6 s (first / second process,
+#: experiments/PERFORMANCE_LOG.md, "The band profile").
 BAND_DIRECT_COLUMNS = 64
 BAND_CROP_COLUMNS = 32
 BAND_SMOOTH_WEIGHT = 1.0
@@ -642,6 +644,7 @@ class CalibrationResult:
     psf_sigma_px: float | None = None  # the chart's blur chosen for the maps
     photoreceptor_fitted: bool = False  # the cut-off measured (else kept from init)
     band_fitted: bool = False  # the band profile fitted (else kept from init)
+    band_unresolved: bool = False  # its fit was tried and did not converge: kept
 
     @property
     def calibration(self) -> Calibration:
@@ -672,7 +675,10 @@ class CalibrationResult:
                 "photoreceptor": "fitted (0: none found)"
                 if self.photoreceptor_fitted
                 else "kept from the initial rig",
-                "band": "profile fitted" if self.band_fitted else "kept from the initial rig",
+                "band": "profile fitted"
+                if self.band_fitted
+                else "kept from the initial rig"
+                + (" (its fit did not converge)" if self.band_unresolved else ""),
             },
         )
 
@@ -1058,8 +1064,9 @@ def _fit_chart_float64(
         # the pixels' threshold spread.)
         fit_band = init.band_profile is None and per_pixel
     band_fitted, photoreceptor_fitted = fit_band, fit_photoreceptor
+    band_tried = fit_band
     if fit_band and events.width > max(BAND_DIRECT_COLUMNS, BAND_CROP_COLUMNS):
-        init = _band_from_strip(
+        init, band_fitted = _band_from_strip(
             events, chart, init, t_start_us=t_start_us, rows_per_label=rows_per_label,
             max_steps=max_steps, fit_baseline=fit_baseline, from_data=from_data,
             response_degree=response_degree, fit_curvature=fit_curvature,
@@ -1175,12 +1182,35 @@ def _fit_chart_float64(
                  jnp.asarray(LM_TOL[int(last)], dtype))  # fmt: skip
         # (verbose prints from inside the solve: a host callback, which an exported
         # program cannot hold)
+        u_start = u
         u, n_steps, ok = (
             _lm_stage(*stage)
             if verbose
             else call_exported("calibrate_lm", _lm_stage, stage)
         )
         steps += int(n_steps)
+        if last and not bool(ok) and band is not None:
+            # The band's shape is not determined by this capture: its fit crawls
+            # along a flat valley (a 32x48 chart with 15 µs of timestamp jitter:
+            # the loss fell by 1e-7 of itself over 90 steps while the knots kept
+            # moving). The stage again with the band kept, as with `fit_band=False`
+            # (the exact overlap table, the parameter gone: one more program).
+            if verbose:
+                print("calibrate: the band profile's fit did not converge; kept")
+            band, band_fitted = None, False
+            u = {k: v for k, v in u_start.items() if k != "band"}
+            scale = {k: v for k, v in scale.items() if k != "band"}
+            fit = _FitData(rig, basis, buckets, fit.spectra, fixed_traces,
+                           overlap.values, None, gate, overlap.lo_nm,
+                           overlap.step_nm, fit_baseline, bucket_rows)  # fmt: skip
+            stage = (u, scale, jnp.asarray(profile), keep, fit, max_steps,
+                     bool(verbose), stage[-1])  # fmt: skip
+            u, n_steps, ok = (
+                _lm_stage(*stage)
+                if verbose
+                else call_exported("calibrate_lm", _lm_stage, stage)
+            )
+            steps += int(n_steps)
         converged = bool(ok)
         params = _unscale(u, scale)
         if not all(bool(jnp.all(jnp.isfinite(v))) for v in jax.tree.leaves(params)):
@@ -1286,15 +1316,19 @@ def _fit_chart_float64(
         psf_sigma_px=psf,
         photoreceptor_fitted=photoreceptor_fitted,
         band_fitted=band_fitted,
+        band_unresolved=band_tried and not band_fitted,
     )
 
 
-def _band_from_strip(events: EventStream, chart: Scene, init: Rig, **kw) -> Rig:
+def _band_from_strip(
+    events: EventStream, chart: Scene, init: Rig, **kw
+) -> tuple[Rig, bool]:
     """`init` with the band profile of a calibration of the chart's middle
     `BAND_CROP_COLUMNS` columns (all rows; `kw` as :func:`_fit_chart_float64`'s),
     and its other global values as the whole chart's start: thresholds, c, D(λ),
     the sweep's curvature and the photoreceptor's cut-off (τx and β are the whole
-    chart's: its initial guess)."""
+    chart's: its initial guess); and whether the band was fitted (else `init`'s is
+    kept: its fit on the strip did not converge)."""
     w = events.width
     x0 = (w - BAND_CROP_COLUMNS) // 2
     roi = (x0, 0, x0 + BAND_CROP_COLUMNS, events.height)
@@ -1310,9 +1344,8 @@ def _band_from_strip(events: EventStream, chart: Scene, init: Rig, **kw) -> Rig:
         noise=False,
         **kw,
     )
-    off, val = sub.rig.band_profile
     release_free_memory()  # the strip's compiler memory, before the whole chart's
-    if kw.get("verbose"):
+    if kw.get("verbose") and sub.band_fitted:
         print(f"calibrate: band profile fitted on columns {roi[0]}-{roi[2] - 1}")
     r = sub.rig
     start = init.with_leaves(
@@ -1324,7 +1357,10 @@ def _band_from_strip(events: EventStream, chart: Scene, init: Rig, **kw) -> Rig:
     )
     if kw.get("fit_photoreceptor", True):
         start = start.replace_host(photoreceptor_hz=float(r.effects.photoreceptor_hz))
-    return start.with_band_profile({"offset_nm": list(off), "values": list(val)})
+    if not sub.band_fitted:
+        return start, False
+    off, val = r.band_profile
+    return start.with_band_profile({"offset_nm": list(off), "values": list(val)}), True
 
 
 def save_calibration(path, result: CalibrationResult, *, comment: str = "") -> dict:
