@@ -113,8 +113,8 @@ def call_exported(name: str, fn, args: tuple, *, static: tuple = (), mesh=None):
 
     **Returns:** what `fn(*args)` returns (bit for bit: the same program).
     """
-    folder = _ENABLED[0] / "exported" if _ENABLED else None
-    if folder is None or jax.process_count() > 1 or not _serialization_available():
+    folder = _exported_folder()
+    if folder is None:
         return fn(*args)
     key, leaves, specs, treedef, kept = _signature(name, fn, args, static, mesh)
     pending = _PREPARING.pop(key, None)
@@ -129,9 +129,7 @@ def call_exported(name: str, fn, args: tuple, *, static: tuple = (), mesh=None):
             _COMPILED[key] = compiled
     if key in _COMPILED:
         return _COMPILED[key](*leaves)
-    if key not in _EXPORTED:  # None: export failed, run `fn` itself in this process
-        _EXPORTED[key] = _load_or_export(folder / f"{key}.bin", fn, treedef, kept, specs)
-    exp = _EXPORTED[key]
+    exp = _exported(folder, key, fn, treedef, kept, specs)
     return fn(*args) if exp is None else exp.call(*leaves)
 
 
@@ -148,8 +146,8 @@ def prepare_exported(name: str, fn, args: tuple, *, static: tuple = ()) -> None:
     this thread's float64 setting. Any failure is left for `call_exported`, which
     then compiles as usual.
     """
-    folder = _ENABLED[0] / "exported" if _ENABLED else None
-    if folder is None or jax.process_count() > 1 or not _serialization_available():
+    folder = _exported_folder()
+    if folder is None:
         return
     key, _, specs, treedef, kept = _signature(name, fn, args, static, None)
     if key in _COMPILED or key in _PREPARING:
@@ -158,13 +156,27 @@ def prepare_exported(name: str, fn, args: tuple, *, static: tuple = ()) -> None:
 
     def compile_it():
         with jax.enable_x64(x64):
-            if key not in _EXPORTED:
-                path = folder / f"{key}.bin"
-                _EXPORTED[key] = _load_or_export(path, fn, treedef, kept, specs)
-            exp = _EXPORTED[key]
+            exp = _exported(folder, key, fn, treedef, kept, specs)
             return None if exp is None else jax.jit(exp.call).lower(*specs).compile()
 
     _PREPARING[key] = _background().submit(compile_it)
+
+
+def _exported_folder() -> Path | None:
+    """Where traced programs are kept, or None when they are not (the cache off, a
+    multi-process run, no serializer): then kernels are called directly."""
+    if not _ENABLED or jax.process_count() > 1 or not _serialization_available():
+        return None
+    return _ENABLED[0] / "exported"
+
+
+def _exported(folder: Path, key: str, fn, treedef, kept, specs):
+    """The traced program of `key` (this process's, else stored, else a new export);
+    None when exporting failed (the caller then runs `fn` itself)."""
+    if key not in _EXPORTED:
+        path = folder / f"{key}.bin"
+        _EXPORTED[key] = _load_or_export(path, fn, treedef, kept, specs)
+    return _EXPORTED[key]
 
 
 _COMPILED: dict[str, object] = {}  # key -> compiled program (prepare_exported)

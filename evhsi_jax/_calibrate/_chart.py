@@ -204,14 +204,14 @@ def spectral_traces(
             table.step_nm,
         )
     weight = rig.camera_response * rig.lamp
-    if product is not None:
-        weighted = weight[:, None] * jnp.asarray(spectra, weight.dtype).T
+    weighted = weight[:, None] * jnp.asarray(spectra, weight.dtype).T
+    if product is None:
+        level, traces = overlap.values @ weight, overlap.values @ weighted
+    else:  # (one product for both)
         both = product(jnp.concatenate([weight[:, None], weighted], axis=1))
-        gain = 1.0 / jnp.max(both[:, 0])
-        return BandTable(gain * both[:, 1:], overlap.lo_nm, overlap.step_nm)
-    gain = 1.0 / jnp.max(overlap.values @ weight)
-    weighted = weight[:, None] * jnp.asarray(spectra, overlap.values.dtype).T
-    return BandTable(gain * (overlap.values @ weighted), overlap.lo_nm, overlap.step_nm)
+        level, traces = both[:, 0], both[:, 1:]
+    gain = 1.0 / jnp.max(level)
+    return BandTable(gain * traces, overlap.lo_nm, overlap.step_nm)
 
 
 def chart_log_steps(rig: Rig, data, traces=None, filtered=None):

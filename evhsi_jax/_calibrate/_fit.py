@@ -1129,10 +1129,24 @@ def _fit_chart_float64(
     overlap = band_overlap(rig)
     buckets, bucket_rows = _bucketed(data, dtype)
     band = _band_start(rig, dtype) if fit_band else None
-    fit = _FitData(rig, basis, buckets, jnp.asarray(data.spectra, dtype), fixed_traces,
-                   overlap.values, band, jnp.ones((), dtype), overlap.lo_nm,
-                   overlap.step_nm,
-                   fit_baseline, bucket_rows)  # fmt: skip
+    spectra = jnp.asarray(data.spectra, dtype)
+
+    def fit_data(band, gate):
+        return _FitData(rig, basis, buckets, spectra, fixed_traces, overlap.values,
+                        band, gate, overlap.lo_nm, overlap.step_nm, fit_baseline,
+                        bucket_rows)  # fmt: skip
+
+    def lm_args(u, scale, fit, profile, tol):  # (`keep`: the current one)
+        return (u, scale, jnp.asarray(profile), keep, fit, max_steps, bool(verbose), tol)
+
+    def solve(*a):
+        # (verbose prints from inside the solve: a host callback, which an exported
+        # program cannot hold)
+        if verbose:
+            return _lm_stage(*lm_args(*a))
+        return call_exported("calibrate_lm", _lm_stage, lm_args(*a))
+
+    fit = fit_data(band, jnp.ones((), dtype))
     ones = jnp.ones_like(keep)
 
     def residuals(params, profile, keep):
@@ -1153,8 +1167,7 @@ def _fit_chart_float64(
         # run spent ~20 s of a 48x1280 chart's calibration compiling these, twice
         # with the band's strip). Only their shapes matter: p0 stands for u and s.
         tol0 = jnp.asarray(LM_TOL[0], dtype)
-        prepare_exported("calibrate_lm", _lm_stage, (
-            p0, p0, jnp.asarray(False), keep, fit, max_steps, False, tol0))  # fmt: skip
+        prepare_exported("calibrate_lm", _lm_stage, lm_args(p0, p0, fit, False, tol0))
         prepare_exported(
             "calibrate_residuals", _fit_residuals, (p0, jnp.asarray(False), keep, fit)
         )
@@ -1178,16 +1191,9 @@ def _fit_chart_float64(
         # shape then chased (74 steps on a 32x48 chart, against 31 without it).
         gate = jnp.asarray(float(last), dtype)
         fit = eqx.tree_at(lambda f: f.band_gate, fit, gate)
-        stage = (u, scale, jnp.asarray(profile), keep, fit, max_steps, bool(verbose),
-                 jnp.asarray(LM_TOL[int(last)], dtype))  # fmt: skip
-        # (verbose prints from inside the solve: a host callback, which an exported
-        # program cannot hold)
+        tol = jnp.asarray(LM_TOL[int(last)], dtype)
         u_start = u
-        u, n_steps, ok = (
-            _lm_stage(*stage)
-            if verbose
-            else call_exported("calibrate_lm", _lm_stage, stage)
-        )
+        u, n_steps, ok = solve(u, scale, fit, profile, tol)
         steps += int(n_steps)
         if last and not bool(ok) and band is not None:
             # The band's shape is not determined by this capture: its fit crawls
@@ -1200,16 +1206,8 @@ def _fit_chart_float64(
             band, band_fitted = None, False
             u = {k: v for k, v in u_start.items() if k != "band"}
             scale = {k: v for k, v in scale.items() if k != "band"}
-            fit = _FitData(rig, basis, buckets, fit.spectra, fixed_traces,
-                           overlap.values, None, gate, overlap.lo_nm,
-                           overlap.step_nm, fit_baseline, bucket_rows)  # fmt: skip
-            stage = (u, scale, jnp.asarray(profile), keep, fit, max_steps,
-                     bool(verbose), stage[-1])  # fmt: skip
-            u, n_steps, ok = (
-                _lm_stage(*stage)
-                if verbose
-                else call_exported("calibrate_lm", _lm_stage, stage)
-            )
+            fit = fit_data(None, gate)
+            u, n_steps, ok = solve(u, scale, fit, profile, tol)
             steps += int(n_steps)
         converged = bool(ok)
         params = _unscale(u, scale)

@@ -136,9 +136,14 @@ def _profile_overlap(profile, edges, centres):
     off = np.asarray(profile[0], np.float64)
     val = np.asarray(profile[1], np.float64)
     cum = np.concatenate([[0.0], np.cumsum(0.5 * (val[1:] + val[:-1]) * np.diff(off))])
-    off_j = jnp.asarray(off, centres.dtype)
-    cum_j = jnp.asarray(cum, centres.dtype)
-    g = jnp.interp(edges[None, :] - centres[:, None], off_j, cum_j)
+    dtype = centres.dtype
+    return _differenced(jnp.asarray(off, dtype), jnp.asarray(cum, dtype), edges, centres)
+
+
+def _differenced(off, cum, edges, centres):
+    """The cumulative integral `cum` (at offsets `off`) interpolated at every edge
+    minus centre, differenced over each sub-bin: the `(n, F)` overlap table."""
+    g = jnp.interp(edges[None, :] - centres[:, None], off, cum)
     return g[:, 1:] - g[:, :-1]
 
 
@@ -235,8 +240,7 @@ def _interpolated_overlap(off, cum, edges_nm, lo_nm, step_nm, n):
     dtype = cum.dtype
     centres = lo_nm + step_nm * jnp.arange(n, dtype=dtype)
     edges = jnp.asarray(np.asarray(edges_nm, np.float64), dtype)
-    g = jnp.interp(edges[None, :] - centres[:, None], off, cum)
-    return g[:, 1:] - g[:, :-1]
+    return _differenced(off, cum, edges, centres)
 
 
 def _gaussian_overlap(fwhm_nm, edges, centres):
