@@ -233,7 +233,7 @@ def cmd_reconstruct(args):
     check_outputs(
         _calib_inputs(args), {**_cube_outputs(out, "--out"), "--preview": preview}
     )
-    cal = load_calibration(args.calib)
+    cal = _with_channels(load_calibration(args.calib), args.channels)
     rig = cal.rig
     events = _read_events(args, args.events)
     if len(events) == 0:
@@ -289,6 +289,16 @@ def cmd_reconstruct(args):
         + (f"; preview -> {preview}" if preview else "")
     )
     return 0
+
+
+def _with_channels(cal, channels):
+    """The calibration on `--channels` channels (None: its own)."""
+    if channels is None:
+        return cal
+    try:
+        return cal.with_channels(channels)
+    except ValueError as err:
+        raise ValueError(f"--channels: {err}") from None
 
 
 def _parse_roi(text: str) -> tuple[int, ...]:
@@ -412,7 +422,7 @@ def _reconstruct_per_sweep(args, config):
             raise ValueError(f"{name} {path} lies in the output folder {out}")
         if same_file(path, out):
             raise ValueError(f"--out {out} is the input {name}")
-    cal = load_calibration(args.calib)
+    cal = _with_channels(load_calibration(args.calib), args.channels)
     rig = cal.rig
     if not args.idle_timeout > 0:
         raise ValueError(f"--idle-timeout must be > 0 s, got {args.idle_timeout}")
@@ -470,16 +480,29 @@ def cmd_evaluate(args):
 
     est = load_cube(args.cube)
     ref = load_cube(args.truth)
-    if est["cube"].shape != ref["cube"].shape:
-        raise ValueError(
-            f"cube {est['cube'].shape} and truth {ref['cube'].shape} differ in shape"
-        )
-    if not np.allclose(est["wavelengths_nm"], ref["wavelengths_nm"]):
-        raise ValueError("cube and truth have different wavelengths_nm")
+    e_shape, r_shape = est["cube"].shape, ref["cube"].shape
+    if e_shape[:2] != r_shape[:2]:
+        raise ValueError(f"cube {e_shape} and truth {r_shape} differ in shape")
     for name, data in ((args.cube, est), (args.truth, ref)):
         bad = int(np.count_nonzero(~np.isfinite(data["cube"])))
         if bad:  # the metrics would be NaN or meaningless
             raise ValueError(f"{name} holds {bad} NaN/inf value(s): metrics undefined")
+    e_wl, r_wl = est["wavelengths_nm"], ref["wavelengths_nm"]
+    if e_wl.shape != r_wl.shape or not np.allclose(e_wl, r_wl):
+        if not args.resample:
+            raise ValueError(
+                f"cube ({e_wl.size} channels) and truth ({r_wl.size}) have different "
+                "wavelengths_nm; --resample interpolates the cube onto the truth's"
+            )
+        from ._base import resample_matrix
+
+        w = resample_matrix(e_wl, r_wl, name=f"cube {args.cube}")
+        est = {**est, "cube": np.asarray(est["cube"], np.float64) @ w.T}
+        print(
+            f"evhsi evaluate: cube resampled from {e_wl.size} to {r_wl.size} channels "
+            "(linear between channel centres)",
+            file=sys.stderr,
+        )
     res = evaluate(est["cube"], ref["cube"])
     if args.json:
         print(json.dumps(res))
@@ -853,6 +876,15 @@ def build_parser() -> argparse.ArgumentParser:
         help="with --follow: seconds without new data that end the recording (10)",
     )
     p.add_argument(
+        "--channels",
+        type=int,
+        default=None,
+        metavar="N",
+        help="recover N channels over the calibration's range instead of its own "
+        "(the cube holds N; its wavelengths_nm say where): fewer are faster, at the "
+        "price of detail narrower than a channel (README, Channels)",
+    )
+    p.add_argument(
         "--roi",
         metavar="x0,y0,x1,y1",
         help="reconstruct only this region (pixels, half-open; e.g. 0,0,320,180): "
@@ -938,6 +970,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--json",
         action="store_true",
         help="print one JSON object {sam_deg, psnr_db, ssim, rms}",
+    )
+    p.add_argument(
+        "--resample",
+        action="store_true",
+        help="where the cube's wavelengths_nm differ from the truth's (reconstruct "
+        "--channels), interpolate the cube linearly onto the truth's channel centres "
+        "(said on stderr) instead of refusing",
     )
     p.set_defaults(func=cmd_evaluate)
 

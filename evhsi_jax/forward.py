@@ -7,6 +7,7 @@ from ._base import band_integrate as band_integrate
 from ._base import default_camera_response as default_camera_response
 from ._base import default_lamp_spectrum as default_lamp_spectrum
 from ._base import resample as resample
+from ._base import resample_matrix as resample_matrix
 from ._model import BUILTIN_SCENES as BUILTIN_SCENES
 from ._model import DYNAMIC_SCENES as DYNAMIC_SCENES
 from ._model import SENSOR_PRESETS as SENSOR_PRESETS
@@ -43,6 +44,7 @@ __all__ = [
     "parse_size",
     "band_integrate",
     "resample",
+    "resample_matrix",
     "default_camera_response",
     "default_lamp_spectrum",
     "BandTable",

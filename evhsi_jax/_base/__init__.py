@@ -32,6 +32,7 @@ from ._spectra import band_integrate_matrix as band_integrate_matrix
 from ._spectra import default_camera_response as default_camera_response
 from ._spectra import default_lamp_spectrum as default_lamp_spectrum
 from ._spectra import resample as resample
+from ._spectra import resample_matrix as resample_matrix
 from ._storage import TEMP_SUFFIX as TEMP_SUFFIX
 from ._storage import atomic_write as atomic_write
 from ._storage import check_outputs as check_outputs

@@ -25,6 +25,7 @@ __all__ = [
     "band_integrate",
     "band_integrate_matrix",
     "resample",
+    "resample_matrix",
     "default_camera_response",
     "default_lamp_spectrum",
 ]
@@ -194,6 +195,19 @@ def resample(wavelengths_nm, values, new_wavelengths_nm, *, name="spectrum"):
     flat = v.reshape(-1, wl.size)
     out = np.stack([np.interp(new, wl, row) for row in flat])
     return out.reshape(*v.shape[:-1], new.size)
+
+
+def resample_matrix(wavelengths_nm, new_wavelengths_nm, *, name="spectrum"):
+    """The linear operator of :func:`resample`, shape `(K, L)`: `values @ W.T` is
+    the linear interpolation of spectra sampled at `wavelengths_nm` (L,) onto
+    `new_wavelengths_nm` (K,) — two nonzero weights per row, for whole cubes where
+    one `np.interp` per spectrum would be slow. The new wavelengths must lie in the
+    sampled range with half a sample of slack (as :func:`resample`); in that slack
+    the end sample's value is kept (`np.interp`'s clamping), not extrapolated."""
+    wl, _ = _check_spectrum(wavelengths_nm, np.zeros(np.size(wavelengths_nm)), name)
+    new = np.asarray(new_wavelengths_nm, dtype=np.float64)
+    _require_cover(wl, new.min(), new.max(), name)
+    return np.stack([np.interp(new, wl, e) for e in np.eye(wl.size)], axis=1)
 
 
 def default_camera_response(wavelengths_nm) -> np.ndarray:

@@ -90,6 +90,11 @@ class Calibration:
             {**self.report, "roi": [x0, y0, x1, y1]},
         )
 
+    def with_channels(self, channels: int) -> Calibration:
+        """The calibration recovering `channels` channels (:meth:`Rig.with_channels`);
+        the per-pixel maps, hot pixels and report are the channel count's alike."""
+        return dataclasses.replace(self, rig=self.rig.with_channels(channels))
+
     def check_size(self, height: int, width: int) -> None:
         if self.shape is not None and self.shape != (height, width):
             raise ValueError(

@@ -471,6 +471,36 @@ class Rig(eqx.Module):
             **self.effects.as_dict(),
         }
 
+    def with_channels(self, channels: int) -> Rig:
+        """The same rig recovering `channels` channels over the same range
+        (`channel_start_nm`–`channel_stop_nm`): the band, sweep, sensor and column
+        offsets kept, D(λ) and E(λ) put on the new fine grid from the file's
+        spelling (or the defaults), a white reference's `channel_gain` linearly
+        interpolated between the channel centres. The dtype is kept.
+
+        The channel count sets the size of each pixel's QP: fewer channels are
+        faster (the system's assembly and factorisation grow with the band's span
+        in channels and with M) at the price of spectral detail narrower than a
+        channel; README, "Channels" measures both. Raises `ValueError` for a count
+        outside [2, 4096]."""
+        if isinstance(channels, bool) or int(channels) != channels:
+            raise ValueError(f"channels must be an integer, got {channels!r}")
+        channels = int(channels)
+        if channels == self.channels:
+            return self
+        if not 2 <= channels <= MAX_CHANNELS:
+            raise ValueError(f"channels must be in [2, {MAX_CHANNELS}], got {channels}")
+        cfg = self.to_dict()
+        grid = SpectralGrid(
+            channels, self.grid.start_nm, self.grid.stop_nm, self.grid.fine_width_nm
+        )
+        if cfg["channel_gain"] is not None:
+            cfg["channel_gain"] = np.interp(
+                grid.centres_nm, self.grid.centres_nm, cfg["channel_gain"]
+            ).tolist()
+        cfg["channels"] = channels
+        return Rig.from_dict(cfg).astype(self.fwhm_nm.dtype)
+
     def astype(self, dtype) -> Rig:
         """The same rig with every floating-point physics leaf cast to `dtype` (for
         float64, call inside `jax.enable_x64(True)`); the host settings keep their

@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import evhsi_jax as ev
 from evhsi_jax import Rig
 from evhsi_jax._model._rig import DEFAULTS
 from evhsi_jax.forward import SpectralGrid
@@ -321,3 +322,31 @@ def test_load_calibration_refuses_a_map_name_that_is_not_a_file_name(tmp_path):
     (tmp_path / "calib.json").write_text(json.dumps({"threshold_map": 5}))
     with pytest.raises(ValueError, match="file name"):
         load_calibration(tmp_path / "calib.json")
+
+
+def test_with_channels_keeps_the_rig_and_resamples_the_gains():
+    gain = np.linspace(0.8, 1.2, 72)
+    rig = ev.Rig.from_dict({
+        "sensor": "realistic", "channel_gain": gain.tolist(),
+        "camera_response": {"wavelengths_nm": [390.0, 600.0, 770.0], "values": [0.5, 1.0, 0.7]},
+        "column_offsets_us": [0.0, 3.0, 7.0],
+    })  # fmt: skip
+    new = rig.with_channels(36)
+    assert new.channels == 36 and new.grid.start_nm == 400 and new.grid.stop_nm == 760
+    assert rig.with_channels(72) is rig
+    a, b = rig.to_dict(), new.to_dict()
+    changed = {k for k in a if a[k] != b[k]}
+    assert changed == {"channels", "channel_gain"}  # band, sensor, offsets, spectra kept
+    # the gain is linear in the centres, so its interpolation is exact
+    centres = new.wavelengths_nm
+    np.testing.assert_allclose(b["channel_gain"], 0.8 + 0.4 * (centres - 402.5) / 355, rtol=1e-12)
+    # D(λ) from the file's spelling on the new fine grid, not the old fine samples
+    want = ev.forward.resample([390.0, 600.0, 770.0], [0.5, 1.0, 0.7], new.grid.fine_centres_nm)
+    np.testing.assert_allclose(np.asarray(new.camera_response), want / want.max(), rtol=1e-6)
+    assert new.fwhm_nm.dtype == rig.fwhm_nm.dtype
+    cal = ev.Calibration(rig, np.full((2, 3), 0.2), np.full((2, 3), 0.25))
+    c36 = cal.with_channels(36)
+    assert c36.rig.channels == 36 and c36.threshold_on is cal.threshold_on
+    for bad in (1, 4097, True):
+        with pytest.raises(ValueError, match="channels"):
+            rig.with_channels(bad)

@@ -100,6 +100,42 @@ def test_cli_writes_and_reads_every_format(capture, capsys, tmp_path):
     assert np.array_equal(ev.load_cube(tmp_path / "back.npz")["cube"], outs["npz"]["cube"])
 
 
+def test_reconstruct_on_fewer_channels_and_evaluate_with_resampling(capture, capsys, tmp_path):
+    d, events, truth, wl = capture
+    ev.save_cube(tmp_path / "truth.npz", truth, wl)
+    out = tmp_path / "c36.npz"
+    assert main(["reconstruct", str(d / "ev.npz"), "--calib", str(d / "cal.json"),
+                 "--out", str(out), "--channels", "36", "--quiet"]) == 0  # fmt: skip
+    got = ev.load_cube(out)
+    rig36 = ev.Rig().with_channels(36)
+    assert got["cube"].shape == (H, W, 36)
+    np.testing.assert_allclose(got["wavelengths_nm"], rig36.wavelengths_nm)
+    # the same cube as the Python API on the 36-channel calibration
+    np.testing.assert_array_equal(got["cube"], ev.reconstruct(events, rig36))
+    capsys.readouterr()
+    assert main(["evaluate", str(out), "--truth", str(tmp_path / "truth.npz")]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "--resample" in err
+    assert main(["evaluate", str(out), "--truth", str(tmp_path / "truth.npz"),
+                 "--resample", "--json"]) == 0  # fmt: skip
+    io = capsys.readouterr()
+    w = ev.forward.resample_matrix(rig36.wavelengths_nm, wl)
+    assert json.loads(io.out) == ev.evaluate(np.asarray(got["cube"], np.float64) @ w.T, truth)
+    assert "resampled from 36 to 72" in io.err
+    # weights summing to 1, interpolating a line exactly between the cube's centres
+    # (beyond its first and last centre, half a channel: the end value)
+    np.testing.assert_allclose(w.sum(1), 1.0)
+    assert (np.count_nonzero(w, axis=1) <= 2).all()
+    np.testing.assert_allclose((w @ rig36.wavelengths_nm)[1:-1], wl[1:-1])
+    assert (w @ rig36.wavelengths_nm)[0] == rig36.wavelengths_nm[0]
+    for bad in ("1", "5000"):
+        code = main(["reconstruct", str(d / "ev.npz"), "--calib", str(d / "cal.json"),
+                     "--out", str(tmp_path / "x.npz"), "--channels", bad])  # fmt: skip
+        err = capsys.readouterr().err
+        assert code == 2 and "--channels" in err and len(err.strip().splitlines()) == 1
+        assert not (tmp_path / "x.npz").exists()
+
+
 def test_bad_cube_files_are_one_line_errors(capsys, tmp_path):
     cube, wl = _cube(3)
     ev.save_cube(tmp_path / "c.hdr", cube, wl)
