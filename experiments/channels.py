@@ -38,7 +38,7 @@ from pathlib import Path
 
 import jax.random as jr
 import numpy as np
-from _common import matmul_gflops, median_time, write_json
+from _common import OUT, matmul_gflops, median_time, write_json
 from realism import CHART_SWEEPS, user_init
 
 import evhsi_jax as ev
@@ -116,7 +116,7 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--quick", action="store_true", help="72, 48 and 36 channels only")
-    ap.add_argument("--out", default="experiments/results/channels.json")
+    ap.add_argument("--out", default=str(OUT / "channels.json"))
     ap.add_argument("--table", metavar="JSON", help="print the tables of a finished run")
     args = ap.parse_args(argv)
     if args.table:
