@@ -26,11 +26,15 @@ of `--repeats` warm runs in this process after one cold run (compilation):
   the same events (share of pixels within 0.1° SAM);
 - the device work of the ideal path with other batch sizes (`--batch-variants`,
   `CHUNKxSUB,...`: does a larger or smaller step fill the device better?);
-- the device's float32 matmul rate (8192² on a GPU, 1024² on a CPU) in the same run.
+- the device's float32 matmul rate (8192² on a GPU, 1024² on a CPU) in the same run;
+- `--channels N`: every case reconstructed on N channels (`Rig.with_channels`; the
+  captures are the 72-channel rig's), its metrics on the cube interpolated onto the 72
+  truth channels (README, Performance, "Fewer channels").
 
     python experiments/bench_gpu.py [--size 720x1280] [--repeats 3] [--out PATH]
         [--cases ideal,noise,realistic] [--batch-variants 65536x65536,262144x262144]
         [--backends jax,cuda] [--base-backend jax|cuda] [--whole-only] [--no-float64] [--profile N]
+        [--channels N]
 
 Writes `experiments/results/bench_gpu.json` (or `--out`). On a CPU use a small
 `--size` (the full sensor takes minutes there); the GPU figures in the README were
@@ -185,11 +189,20 @@ def main():
     ap.add_argument(
         "--no-float64", action="store_true", help="leave out the float64 check"
     )
+    ap.add_argument(
+        "--channels", type=int, default=None, metavar="N",
+        help="reconstruct N channels (Rig.with_channels) from captures of the 72-channel "
+        "rig; metrics on the cube interpolated onto the 72 truth channels",
+    )  # fmt: skip
     ap.add_argument("--profile", type=int, default=0, metavar="N",
                     help="cProfile one more warm whole call per backend: its N "
                          "costliest functions (own time, and with callees)")  # fmt: skip
     args = ap.parse_args()
     h, w = ev.forward.parse_size(args.size)
+
+    def solved_by(r):  # the rig a case reconstructs with (captures: the 72-channel rig)
+        return r if args.channels is None else r.with_channels(args.channels)
+
     dev = jax.devices()[0]
     report = {
         "size": [h, w],
@@ -198,6 +211,7 @@ def main():
         "jax": jax.__version__,
         "host": platform.processor() or platform.machine(),
         "batch_sizes": list(pipe.batch_sizes(None, None)),
+        "channels": args.channels or 72,
         # default precision (TF32 on a recent GPU)
         "matmul_gflops_f32": [
             matmul_gflops(1024 if jax.default_backend() == "cpu" else 8192)
@@ -215,6 +229,13 @@ def main():
     scene = ev.load_scene("colorchecker", (h, w))
     truth = scene.truth_cube(rig.grid)
 
+    def score(cube):  # SAM/PSNR on the truth's 72 channels
+        cube = np.asarray(cube)
+        if cube.shape[-1] != truth.shape[-1]:
+            wl = solved_by(rig).wavelengths_nm
+            cube = cube @ ev.forward.resample_matrix(wl, rig.wavelengths_nm).T
+        return ev.evaluate(cube, truth)
+
     def sim():
         return ev.simulate(scene, rig, sweeps=1, key=jr.key(0), return_info=True)
 
@@ -229,9 +250,9 @@ def main():
     maps = (info.threshold_on, info.threshold_off)
     wanted = args.cases.split(",")
     cases = {
-        "ideal path": (rig, events, maps),
+        "ideal path": (solved_by(rig), events, maps),
         "noise path": (
-            ev.Rig(threshold_noise=0.01, timestamp_jitter_us=5.0),
+            solved_by(ev.Rig(threshold_noise=0.01, timestamp_jitter_us=5.0)),
             events,
             maps,
         ),
@@ -245,7 +266,7 @@ def main():
         report["simulate realistic"] = {"cold_s": cold, "events": len(ev_r)}
         print("simulate realistic", report["simulate realistic"], flush=True)
         cases["realistic path"] = (
-            real,
+            solved_by(real),
             ev_r,
             (info_r.threshold_on, info_r.threshold_off),
         )
@@ -267,7 +288,7 @@ def main():
             print(name, "failed:", repr(err)[:300], flush=True)
             continue
         med = statistics.median(warm)
-        metrics = ev.evaluate(cube, truth)
+        metrics = score(cube)
         row = {
             "cold_s": cold,
             "median_s": med,
@@ -295,7 +316,7 @@ def main():
                 row.setdefault("backends", {})[backend] = {"error": repr(err)[:300]}
                 print("  backend", backend, "failed:", repr(err)[:300], flush=True)
                 continue
-            mb = ev.evaluate(cube_b, truth)
+            mb = score(cube_b)
             row.setdefault("backends", {})[backend] = {
                 "cold_s": cold_b,
                 "median_s": statistics.median(warm_b),
@@ -339,7 +360,7 @@ def main():
         return write_json(args.out, report)
     # float32 against a float64 solve of the same events (whole image).
     jax.config.update("jax_enable_x64", True)
-    rig64 = rig.astype(jnp.float64)
+    rig64 = solved_by(rig).astype(jnp.float64)
     t = time.perf_counter()
     cube64 = ev.reconstruct(events, rig64, threshold_on_map=maps[0],
                             threshold_off_map=maps[1])  # fmt: skip
@@ -350,7 +371,7 @@ def main():
         "share_within_0.1deg": float(np.mean(d <= 0.1)),
         "median_deg": float(np.median(d)),
         "max_deg": float(np.max(d)),
-        "float64_sam_deg": ev.evaluate(cube64, truth)["sam_deg"],
+        "float64_sam_deg": score(cube64)["sam_deg"],
     }
     for backend, cube_b in cubes_by_backend.items():
         d = ev.metrics.sam_map_deg(cube_b, cube64)
