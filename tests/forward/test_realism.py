@@ -3,6 +3,7 @@ measures the noise it was given, the noise-aware reconstruction and its contract
 
 import hashlib
 
+import jax
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
@@ -233,9 +234,15 @@ def test_noise_weights_match_a_numpy_reference():
     off = float(rig.column_offsets(6)[b.column[i]])
     cfg = ProblemConfig()
     sig_c, sig_t = 0.01, 3.0
-    args = (rig, table, cfg, PixelEvents(t, pol, mk, off, 0.15, 0.15, 0.0), 1)
-    rows = pixel_system(*args, noise=jnp.asarray([sig_c, sig_t, 0.0]), return_rows=True)
-    plain = pixel_system(*args, return_rows=True)
+    px = PixelEvents(t, pol, mk, off, 0.15, 0.15, 0.0)
+    rows_of = jax.jit(  # one program per case (op by op: one per primitive)
+        lambda px, noise: pixel_system(
+            rig, table, cfg, px, 1, noise=noise and jnp.asarray(noise), return_rows=True
+        ),
+        static_argnums=1,
+    )
+    rows = rows_of(px, (sig_c, sig_t, 0.0))
+    plain = rows_of(px, None)
     # NumPy: slope = C / (t_k - ρ_k), ρ_k = t_{k-1} + η (0 for the first event).
     tt = np.asarray(b.t_us[i], np.float64)
     ref = np.concatenate([[0.0], tt[:-1] + 50.0])
@@ -255,8 +262,6 @@ def test_dark_prior_as_a_tridiagonal_term_is_its_rows():
     # the CUDA kernel takes) must give the same matrix, and pixel_system's Q must be
     # that of the rows with the prior's rows appended (float64: exact up to the sum's
     # order).
-    import jax
-
     from evhsi_jax._model._illumination import band_table
     from evhsi_jax._reconstruct._problem import dark_gram, dark_rows, system_from_rows
 
@@ -275,18 +280,24 @@ def test_dark_prior_as_a_tridiagonal_term_is_its_rows():
         px = PixelEvents(jnp.asarray(b.t_us[i]), jnp.asarray(b.polarity[i], jnp.int32),
                          jnp.asarray(b.mask[i]), 0.0, 0.15, 0.15, 0.0)  # fmt: skip
         cfg = ProblemConfig(alpha_dark=1e-2)
-        args = (rig, table, cfg, px, 1)
         noise = jnp.asarray([0.01, 5.0, 0.0])
-        rows = pixel_system(*args, noise=noise, return_rows=True)
+        system = jax.jit(  # one program each (op by op: one per primitive)
+            lambda px, return_rows: pixel_system(
+                rig, table, cfg, px, 1, noise=noise, return_rows=return_rows
+            ),
+            static_argnums=1,
+        )
+        from_rows = jax.jit(lambda rows: system_from_rows(cfg, rows))
+        rows = system(px, True)
         assert rows.dark is not None and float(jnp.max(rows.dark)) > 0
-        q, qv, _ = pixel_system(*args, noise=noise)
+        q, qv, _ = system(px, False)
         dense = rows._replace(
             drift=jnp.concatenate([rows.drift, dark_rows(rows.dark)]), dark=None
         )
-        q2, qv2, _ = system_from_rows(cfg, dense)
+        q2, qv2, _ = from_rows(dense)
         np.testing.assert_allclose(q, q2, rtol=1e-12, atol=1e-12 * float(jnp.abs(q).max()))
         np.testing.assert_allclose(qv, qv2, rtol=1e-12, atol=1e-15)
-        q3, _, _ = system_from_rows(cfg, rows)
+        q3, _, _ = from_rows(rows)
         np.testing.assert_allclose(q3, q, rtol=1e-12, atol=1e-12 * float(jnp.abs(q).max()))
 
 
@@ -302,6 +313,16 @@ def test_linearised_lowpass_rows_explain_a_lowpassed_capture():
     truth = scene.truth_cube(rig.grid).reshape(-1, rig.channels)
     b = group_pixels(e, chunk_pixels=24)[0][0]
     d_w = 1e6 / (2 * np.pi * 5000.0)
+    noise = jnp.asarray([0.0, 0.0, d_w])
+    cfg = ProblemConfig()
+    # jitted: one program each for the six pixels (op by op, a cold cache compiled
+    # every primitive of the photoreceptor rows on its own)
+    lin_rows = jax.jit(lambda px, x: pixel_system(
+        rig, table, cfg, px, 1, noise=noise, x0=x, return_rows=True
+    ).events)  # fmt: skip
+    shift_rows = jax.jit(lambda px: pixel_system(
+        rig, table, cfg, px, 1, noise=noise, return_rows=True
+    ).events)  # fmt: skip
     res_lin, res_shift = [], []
     for i in np.flatnonzero(b.count > 8)[:6]:
         off = float(rig.column_offsets(6)[b.column[i]])
@@ -311,15 +332,11 @@ def test_linearised_lowpass_rows_explain_a_lowpassed_capture():
             jnp.asarray(b.mask[i]),
             off, 0.15, 0.15, 0.0,
         )  # fmt: skip
-        args = (rig, table, ProblemConfig(), px, 1)
         x = jnp.asarray(truth[b.pixel[i]], jnp.float32)
         xa = jnp.concatenate([x, jnp.ones(1)])
-        noise = jnp.asarray([0.0, 0.0, d_w])
-        lin = pixel_system(*args, noise=noise, x0=x, return_rows=True)
-        shift = pixel_system(*args, noise=noise, return_rows=True)
         m = b.mask[i]
-        res_lin.append(np.abs(np.asarray(lin.events @ xa))[m])
-        res_shift.append(np.abs(np.asarray(shift.events @ xa))[m])
+        res_lin.append(np.abs(np.asarray(lin_rows(px, x) @ xa))[m])
+        res_shift.append(np.abs(np.asarray(shift_rows(px) @ xa))[m])
     lin_rms = np.sqrt(np.mean(np.concatenate(res_lin) ** 2))
     shift_rms = np.sqrt(np.mean(np.concatenate(res_shift) ** 2))
     assert lin_rms < 0.01  # well below one threshold (0.15)
@@ -357,8 +374,11 @@ def test_lowpass_rows_are_the_filters_jacobian():
             r = _lowpass_rows(rig, a_at, x, d_w, t_us, step, 0.0, 1)
             return r[:, :m] @ x + r[:, m]
 
-        jac = np.asarray(jax.jacfwd(level_steps)(x0))
-        rows = np.asarray(_lowpass_rows(rig, a_at, x0, d_w, t_us, step, 0.0, 1))
+        # jitted: one program each (op by op, a cold cache compiled every primitive)
+        jac = np.asarray(jax.jit(jax.jacfwd(level_steps))(x0))
+        rows = np.asarray(
+            jax.jit(lambda x: _lowpass_rows(rig, a_at, x, d_w, t_us, step, 0.0, 1))(x0)
+        )
     scale = np.abs(jac).max()
     assert scale > 0
     np.testing.assert_allclose(rows[:, :m], jac, rtol=0, atol=1e-9 * scale)
