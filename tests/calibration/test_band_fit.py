@@ -1,8 +1,6 @@
 """The calibration fits the band profile: a gray chart sees the band's shape where the
 band enters and leaves the channel range (README, Calibration, "The band profile")."""
 
-import contextlib
-import io
 
 import jax
 import jax.numpy as jnp
@@ -68,19 +66,27 @@ def shouldered():
     scene = ev.load_scene("tcs", (24, 32))
     held_out = ev.simulate(scene, true, sweeps=1, key=key)
     truth = scene.truth_cube(true.grid)
-    printed = io.StringIO()
-    with pytest.MonkeyPatch.context() as m, contextlib.redirect_stdout(printed):
+    band_from_strip = _fit._band_from_strip
+    strips = []  # the chart's width at the strip's calibration, the band fitted there
+
+    def strip(events, *a, **kw):
+        rig, fitted = band_from_strip(events, *a, **kw)
+        strips.extend([events.width, fitted])
+        return rig, fitted
+
+    with pytest.MonkeyPatch.context() as m:  # (not verbose: the stored programs run)
         m.setattr(_fit, "BAND_DIRECT_COLUMNS", 16)
         m.setattr(_fit, "BAND_CROP_COLUMNS", 16)
-        fitted = ev.calibrate(gray, chart, ev.Rig(), verbose=True)
+        m.setattr(_fit, "_band_from_strip", strip)
+        fitted = ev.calibrate(gray, chart, ev.Rig())
     given = ev.Rig.from_dict({"band_profile": _shouldered_band(17.5, shoulder=0.0)})
     kept = ev.calibrate(gray, chart, given)
-    return true, held_out, truth, fitted, kept, given, printed.getvalue()
+    return true, held_out, truth, fitted, kept, given, strips
 
 
 def test_a_shouldered_band_is_fitted_from_a_gray_chart(shouldered):
-    true, held_out, truth, fitted, kept, _, printed = shouldered
-    assert "band profile fitted on columns 8-23" in printed
+    true, held_out, truth, fitted, kept, _, strips = shouldered
+    assert strips == [32, True]  # fitted on the middle 16 columns first
     assert fitted.calibration.report["band"] == "profile fitted"
     # The Gaussian leaves a misfit the fitted band does not (noise-free sensor).
     assert fitted.rms_residual < 0.01 < kept.rms_residual
@@ -184,24 +190,36 @@ def test_a_band_fit_that_does_not_converge_keeps_the_band(small_gray, monkeypatc
     the shape: 15 µs of timestamp jitter in the realism study), the stage runs again
     with the band kept, and the report says so. Non-convergence is forced here (the
     solver's answer replaced), through the wide-chart path: the strip's own fit
-    gives up on the band that way, and the whole chart keeps it."""
+    gives up on the band that way, and the whole chart keeps it. (Not verbose: the
+    stored programs run, and the whole chart's are those of the fit with the band
+    kept, compiled once.)"""
     from evhsi_jax._calibrate import _fit
 
     chart, gray = small_gray
-    solve = _fit._lm_stage
+    call = _fit.call_exported
+    strips = []
 
-    def band_never_converges(u, scale, profile, keep, fit, *rest):
-        u, n, ok = solve(u, scale, profile, keep, fit, *rest)
-        return u, n, ok and not (fit.band is not None and float(fit.band_gate) == 1.0)
+    def band_never_converges(name, fn, args, *rest, **kw):
+        out = call(name, fn, args, *rest, **kw)
+        fit = args[4] if name == "calibrate_lm" else None
+        if fit is not None and fit.band is not None and float(fit.band_gate) == 1.0:
+            return out[0], out[1], jnp.asarray(False)
+        return out
 
+    def strip(events, *a, **kw):
+        strips.append(events.width)
+        rig, fitted = band_from_strip(events, *a, **kw)
+        strips.append(fitted)
+        return rig, fitted
+
+    band_from_strip = _fit._band_from_strip
     monkeypatch.setattr(_fit, "BAND_DIRECT_COLUMNS", 8)
     monkeypatch.setattr(_fit, "BAND_CROP_COLUMNS", 8)
     kept = ev.calibrate(gray, chart, ev.Rig(), fit_band=False)
-    monkeypatch.setattr(_fit, "_lm_stage", band_never_converges)
-    printed = io.StringIO()
-    with contextlib.redirect_stdout(printed):  # (verbose: the solver called directly)
-        res = ev.calibrate(gray, chart, ev.Rig(), verbose=True)
-    assert "the band profile's fit did not converge; kept" in printed.getvalue()
+    monkeypatch.setattr(_fit, "call_exported", band_never_converges)
+    monkeypatch.setattr(_fit, "_band_from_strip", strip)
+    res = ev.calibrate(gray, chart, ev.Rig())
+    assert strips == [16, False]  # the strip's band fit gave up: the band kept
     assert res.converged and not res.band_fitted and res.band_unresolved
     assert res.rig.band_profile is None
     report = res.calibration.report["band"]

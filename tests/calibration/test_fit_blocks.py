@@ -69,8 +69,7 @@ def _dense(u, scale, keep, fit, profile):
         band = [F._band_prior(th["band"], fit.band)] if "band" in th else []
         return jnp.concatenate([res, F._prior_residuals(th, fit), *band])
 
-    r = all_residuals(flat)
-    j = jax.jacfwd(all_residuals)(flat)
+    r, j = jax.jit(lambda uf: (all_residuals(uf), jax.jacfwd(all_residuals)(uf)))(flat)
     return j.T @ j, j.T @ r, r @ r
 
 
@@ -79,7 +78,8 @@ def test_blocked_normal_equations_match_the_dense_jacobian(system, profile):
     u, scale, keep, fit, data, buckets = system
     assert len(buckets) >= 2 and max(b[0].shape[0] for b in buckets) >= 2
     with jax.enable_x64(True):
-        h, b, ss = F._fit_system(u, (scale, (profile, keep, fit)))
+        # jitted (op by op, a cold cache compiled every primitive on its own)
+        h, b, ss = jax.jit(lambda u: F._fit_system(u, (scale, (profile, keep, fit))))(u)
         h_ref, b_ref, ss_ref = _dense(u, scale, keep, fit, profile)
     np.testing.assert_allclose(h, h_ref, rtol=1e-9, atol=1e-9 * float(jnp.max(h_ref)))
     np.testing.assert_allclose(
@@ -93,8 +93,9 @@ def test_reduced_residual_has_the_full_gauss_newton_model(system):
     args = (scale, (True, keep, fit))
     with jax.enable_x64(True):
         flat, unravel = jax.flatten_util.ravel_pytree(u)
-        red = F._fit_residuals_scaled(u, args)
-        jt = jax.jacfwd(lambda uf: F._fit_residuals_scaled(unravel(uf), args))(flat)
+        res = jax.jit(lambda uf: F._fit_residuals_scaled(unravel(uf), args))
+        red = res(flat)
+        jt = jax.jit(jax.jacfwd(res))(flat)
         h_ref, b_ref, ss_ref = _dense(u, scale, keep, fit, True)
     # Profiled thresholds: their columns are zero and get a unit pivot (gradient 0).
     live = np.asarray(jnp.diag(h_ref) > 0)
