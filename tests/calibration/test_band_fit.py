@@ -185,6 +185,7 @@ def small_gray():
     return chart, ev.simulate(chart, ev.Rig(), sweeps=4, key=jr.key(3))
 
 
+@pytest.mark.slow  # ~50-80 s of compilation with an empty cache: `make bench`
 def test_a_band_fit_that_does_not_converge_keeps_the_band(small_gray, monkeypatch):
     """When the band's stage does not converge (a capture that does not determine
     the shape: 15 µs of timestamp jitter in the realism study), the stage runs again
