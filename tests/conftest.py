@@ -68,12 +68,15 @@ def io_backend(request):
 # first, so that with pytest-xdist (`make test`: `-n 2 --dist loadfile`) the short
 # modules fill the other worker instead of one long module ending the run alone.
 HEAVY_FIRST = (
+    "test_band_fit.py",
     "test_realism_fit.py",
     "test_realism_calibration.py",
     "test_design.py",
     "test_notebooks.py",
     "test_calibrate.py",
     "test_reconstruct.py",
+    "test_fit_blocks.py",
+    "test_cuda_kernel.py",
     "test_shard.py",
     "test_reliability.py",
 )

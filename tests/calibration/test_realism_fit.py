@@ -82,6 +82,7 @@ def test_slow_photoreceptor_is_measured_and_fits_without_each_sweeps_first_event
     assert 0 < first.sum() <= d.mask.sum() // 5
 
 
+@pytest.mark.slow  # ~40 s of compilation with an empty cache: `make bench`
 def test_a_1khz_photoreceptor_is_found_from_the_second_start():
     """A 1 kHz photoreceptor lags its events by hundreds of µs: from the ideal
     model's screening and initial guess the fit does not converge, and the
