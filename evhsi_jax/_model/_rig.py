@@ -476,7 +476,10 @@ class Rig(eqx.Module):
         (`channel_start_nm`–`channel_stop_nm`): the band, sweep, sensor and column
         offsets kept, D(λ) and E(λ) put on the new fine grid from the file's
         spelling (or the defaults), a white reference's `channel_gain` linearly
-        interpolated between the channel centres. The dtype is kept.
+        interpolated between the channel centres. The dtype is kept. The fine
+        sub-bins are at most as wide as the rig's (each channel split into whole
+        parts), so a chain of conversions can narrow them (72 → 48 → 72: 1 nm →
+        0.94 nm → 0.83 nm; 72 ↔ 36 keeps 1 nm).
 
         The channel count sets the size of each pixel's QP: fewer channels are
         faster (the system's assembly and factorisation grow with the band's span
