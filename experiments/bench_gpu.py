@@ -229,12 +229,15 @@ def main():
     scene = ev.load_scene("colorchecker", (h, w))
     truth = scene.truth_cube(rig.grid)
 
+    to_truth = (  # the reconstruction's channels onto the truth's 72
+        None
+        if args.channels is None
+        else ev.forward.resample_matrix(solved_by(rig).wavelengths_nm, rig.wavelengths_nm)
+    )
+
     def score(cube):  # SAM/PSNR on the truth's 72 channels
         cube = np.asarray(cube)
-        if cube.shape[-1] != truth.shape[-1]:
-            wl = solved_by(rig).wavelengths_nm
-            cube = cube @ ev.forward.resample_matrix(wl, rig.wavelengths_nm).T
-        return ev.evaluate(cube, truth)
+        return ev.evaluate(cube if to_truth is None else cube @ to_truth.T, truth)
 
     def sim():
         return ev.simulate(scene, rig, sweeps=1, key=jr.key(0), return_info=True)

@@ -1,7 +1,6 @@
 """The calibration fits the band profile: a gray chart sees the band's shape where the
 band enters and leaves the channel range (README, Calibration, "The band profile")."""
 
-
 import jax
 import jax.numpy as jnp
 import jax.random as jr
@@ -48,6 +47,22 @@ def test_with_band_profile_validates_like_a_rig_file():
         ev.Rig().with_band_profile({"offset_nm": [0, 1, 2], "values": [0, -1, 0]})
 
 
+def _watch_strip(mp) -> list:
+    """Watch the wide-chart path through `mp` (a MonkeyPatch): each calibration of
+    the strip appends the whole chart's width and whether the band was fitted there."""
+    from evhsi_jax._calibrate import _fit
+
+    seen, inner = [], _fit._band_from_strip
+
+    def strip(events, *a, **kw):
+        rig, fitted = inner(events, *a, **kw)
+        seen.extend([events.width, fitted])
+        return rig, fitted
+
+    mp.setattr(_fit, "_band_from_strip", strip)
+    return seen
+
+
 @pytest.fixture(scope="module")
 def shouldered():
     """A 24x32 gray chart of 4 sweeps and a held-out TCS sweep, from a sensor whose
@@ -66,18 +81,10 @@ def shouldered():
     scene = ev.load_scene("tcs", (24, 32))
     held_out = ev.simulate(scene, true, sweeps=1, key=key)
     truth = scene.truth_cube(true.grid)
-    band_from_strip = _fit._band_from_strip
-    strips = []  # the chart's width at the strip's calibration, the band fitted there
-
-    def strip(events, *a, **kw):
-        rig, fitted = band_from_strip(events, *a, **kw)
-        strips.extend([events.width, fitted])
-        return rig, fitted
-
     with pytest.MonkeyPatch.context() as m:  # (not verbose: the stored programs run)
         m.setattr(_fit, "BAND_DIRECT_COLUMNS", 16)
         m.setattr(_fit, "BAND_CROP_COLUMNS", 16)
-        m.setattr(_fit, "_band_from_strip", strip)
+        strips = _watch_strip(m)
         fitted = ev.calibrate(gray, chart, ev.Rig())
     given = ev.Rig.from_dict({"band_profile": _shouldered_band(17.5, shoulder=0.0)})
     kept = ev.calibrate(gray, chart, given)
@@ -198,7 +205,6 @@ def test_a_band_fit_that_does_not_converge_keeps_the_band(small_gray, monkeypatc
 
     chart, gray = small_gray
     call = _fit.call_exported
-    strips = []
 
     def band_never_converges(name, fn, args, *rest, **kw):
         out = call(name, fn, args, *rest, **kw)
@@ -207,18 +213,11 @@ def test_a_band_fit_that_does_not_converge_keeps_the_band(small_gray, monkeypatc
             return out[0], out[1], jnp.asarray(False)
         return out
 
-    def strip(events, *a, **kw):
-        strips.append(events.width)
-        rig, fitted = band_from_strip(events, *a, **kw)
-        strips.append(fitted)
-        return rig, fitted
-
-    band_from_strip = _fit._band_from_strip
     monkeypatch.setattr(_fit, "BAND_DIRECT_COLUMNS", 8)
     monkeypatch.setattr(_fit, "BAND_CROP_COLUMNS", 8)
     kept = ev.calibrate(gray, chart, ev.Rig(), fit_band=False)
     monkeypatch.setattr(_fit, "call_exported", band_never_converges)
-    monkeypatch.setattr(_fit, "_band_from_strip", strip)
+    strips = _watch_strip(monkeypatch)
     res = ev.calibrate(gray, chart, ev.Rig())
     assert strips == [16, False]  # the strip's band fit gave up: the band kept
     assert res.converged and not res.band_fitted and res.band_unresolved

@@ -237,7 +237,8 @@ def test_noise_weights_match_a_numpy_reference():
     px = PixelEvents(t, pol, mk, off, 0.15, 0.15, 0.0)
     rows_of = jax.jit(  # one program per case (op by op: one per primitive)
         lambda px, noise: pixel_system(
-            rig, table, cfg, px, 1, noise=noise and jnp.asarray(noise), return_rows=True
+            rig, table, cfg, px, 1, noise=None if noise is None else jnp.asarray(noise),
+            return_rows=True,
         ),
         static_argnums=1,
     )
