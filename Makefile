@@ -8,7 +8,8 @@ DEMO_OUT ?= out/demo
 PYTEST_ARGS ?=
 # Test processes (pytest-xdist, one module per process so module fixtures are built
 # once): 2 keeps both cores of the reference machine busy; PYTEST_WORKERS=0 runs all
-# in this process.
+# in this process. --no-loadscope-reorder hands the modules out in the collection's
+# order (tests/conftest.py: the longest first) instead of by their count of tests.
 PYTEST_WORKERS ?= 2
 
 .PHONY: demo test lint bench clean browser
@@ -26,7 +27,7 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(PY) -m ruff check .
-	$(PY) -m pytest -q $(if $(filter-out 0,$(PYTEST_WORKERS)),-n $(PYTEST_WORKERS) --dist loadfile) $(PYTEST_ARGS)
+	$(PY) -m pytest -q $(if $(filter-out 0,$(PYTEST_WORKERS)),-n $(PYTEST_WORKERS) --dist loadfile --no-loadscope-reorder) $(PYTEST_ARGS)
 
 lint: $(STAMP)
 	$(PY) -m ruff check .

@@ -67,7 +67,13 @@ def main():
     ap.add_argument("--height", type=int, default=48)
     ap.add_argument("--rows-per-patch", type=int, default=4)
     ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--out", default=None, help="result file (default: calib/out/...)")
     ap.add_argument("--sensor", default="ideal", choices=["ideal", "realistic"])
+    ap.add_argument(
+        "--new-capture", action="store_true",
+        help="then calibrate a second capture of the chart (another seed) with the "
+        "cache the runs filled: a user's next calibration of the same rig",
+    )  # fmt: skip
     args = ap.parse_args()
     cfg = json.loads((HERE / "config.json").read_text())
     h, w = args.height, args.width
@@ -105,19 +111,29 @@ def main():
             )
             print(runs[-1], flush=True)
         cal = ev.load_calibration(cal_path)
+        new = None
+        if args.new_capture:
+            again = ev.simulate(chart, truth, sweeps=2, key=jr.key(4))
+            again_path = Path(tmp) / "chart2.npz"
+            ev.write_events(again_path, again)
+            new = run_cli(again_path, Path(tmp) / "calib2.json", cache,
+                          args.rows_per_patch, init_path)  # fmt: skip
+            print("new capture:", new, flush=True)
     rig = cal.rig
     report = cal.report
     true_vals = true_values(truth, sim)
     out = {
         "command": f"python calib/bench_calibration.py --width {w} --height {h} "
         f"--rows-per-patch {args.rows_per_patch} --repeats {args.repeats} "
-        f"--sensor {args.sensor}",
+        f"--sensor {args.sensor}" + (" --new-capture" if args.new_capture else ""),
         "sensor": args.sensor,
         "size": [h, w],
         "events": len(events),
         "events_used": report.get("events_used"),
         "simulation_s": sim_s,
         "runs": runs,  # first: empty compilation cache; later: warm
+        # another capture of the chart, with the cache the runs filled
+        "new_capture_run": new,
         "steps": report.get("steps"),
         "matmul_gflops_f32": gflops,
         "error_pct": {
@@ -131,7 +147,7 @@ def main():
         },
     }
     suffix = "" if args.sensor == "ideal" else f"_{args.sensor}"
-    path = outdir / f"bench_calibration_{h}x{w}{suffix}.json"
+    path = Path(args.out) if args.out else outdir / f"bench_calibration_{h}x{w}{suffix}.json"
     path.write_text(json.dumps(out, indent=1) + "\n")
     print(json.dumps(out, indent=1))
 

@@ -404,6 +404,14 @@ def with_reference_cutoff(rig: Rig) -> Rig:
     return rig.replace_host(photoreceptor_hz=PHOTORECEPTOR_REF_HZ)
 
 
+def without_band_profile(rig: Rig) -> Rig:
+    """`rig` without its band profile, for a program that sees the band only through
+    tables made outside it (the chart's spectral traces, the band's overlap): the
+    profile is a static value of the rig, part of a program's key, so a program
+    given it would be compiled again for every calibration's newly fitted band."""
+    return rig if rig.band_profile is None else rig.with_band_profile(None)
+
+
 @eqx.filter_jit
 def _lowpassed_values(rig: Rig, traces: BandTable, cutoff_hz):
     """:func:`lowpassed_traces`' values, one program for every block of a pass."""
@@ -444,6 +452,7 @@ def _log_steps_begin(rig: Rig, data: ChartData, block_events: int = 1 << 20):
         data, spectra=np.pad(data.spectra, ((0, pad_spec), (0, 0)))
     )
     traces = spectral_traces(rig, data.spectra)
+    rig = without_band_profile(rig)  # (the band is in the traces)
     filtered = None
     hz = rig.effects.photoreceptor_hz
     if hz > 0:

@@ -98,6 +98,7 @@ from ._chart import (
     sweep_first_events,
     threshold_maps_from_chart,
     with_reference_cutoff,
+    without_band_profile,
 )
 
 __all__ = [
@@ -193,6 +194,10 @@ BLOCK_EVENTS = 1 << 12
 #: (2026-11-27) 5 → 3 buckets, the solver's compilation 14.8 → 11.4 s with two stage
 #: programs, the warm fit unchanged within the machine's noise.
 MERGE_PADDING = 0.06
+#: Up to this many blocks a bucket's count of blocks is a power of two
+#: (`_blocks_of`): a new capture of the same small chart then has the same shapes,
+#: and reuses the compiled programs instead of spending ~15 s compiling its own.
+SMALL_BUCKET_BLOCKS = 16
 
 
 class _FitData(eqx.Module):
@@ -202,9 +207,13 @@ class _FitData(eqx.Module):
     The chart's event lists travel in blocks of pixels: every pass over them holds one
     block's intermediates at a time, so the fit's memory is bounded by the block, not
     by the sensor's width. The pixels are sorted by their number of events and cut into
-    buckets of similar counts (`bucket_rows`), each padded only to its own length:
-    `buckets[i]` is `(t, polarity, mask, column, spectrum)`, each
-    `(n_blocks, block, ...)`.
+    buckets of similar counts, each padded only to its own length: `buckets[i]` is
+    `(t, polarity, mask, column, spectrum)`, each `(n_blocks, block, ...)`. Per-pixel
+    inputs and outputs of the fit's programs (`keep`, the residuals) are in the
+    buckets' padded order, one slot per block row (`_bucketed`'s `slots` place the
+    pixels there): the programs then depend on the buckets' shapes alone, not on how
+    many pixels each holds, so a new capture of the same chart runs the programs
+    compiled for the last one.
     """
 
     rig: Rig
@@ -218,7 +227,6 @@ class _FitData(eqx.Module):
     overlap_lo_nm: float = eqx.field(static=True)
     overlap_step_nm: float = eqx.field(static=True)
     fit_baseline: bool = eqx.field(static=True)
-    bucket_rows: tuple = eqx.field(static=True)  # ((first row, last row + 1), ...)
 
 
 def _by_event_count(data: ChartData) -> ChartData:
@@ -246,16 +254,32 @@ def _merge_small_buckets(need: np.ndarray) -> np.ndarray:
         need[need == k] = k_up
 
 
+def _blocks_of(n: int, block: int) -> int:
+    """Blocks for `n` pixels of `block` each, rounded up to few values so that
+    captures of one chart share their programs: a power of two up to
+    `SMALL_BUCKET_BLOCKS` (a bucket that small costs milliseconds per pass), else
+    a multiple of 1/16 of the power of two below (at most 1/16 more blocks: all
+    rows of the 48x1280 benchmark chart, 903 blocks, became 912, and another
+    capture of it had the same shapes)."""
+    need = max(1, -(-n // block))
+    if need <= SMALL_BUCKET_BLOCKS:
+        return 1 << (need - 1).bit_length()
+    step = (1 << (need.bit_length() - 1)) // 16
+    return -(-need // step) * step
+
+
 def _bucketed(data: ChartData, dtype):
-    """Sorted event lists → buckets of blocks (padding: no events) and their rows.
+    """Sorted event lists → buckets of blocks (padding: no events), and each sorted
+    pixel's slot in the buckets' padded order (see :class:`_FitData`).
 
     A bucket holds the pixels whose event count needs the same power-of-two length
-    (at least 8), in blocks of about `BLOCK_EVENTS` padded events."""
+    `k` (at least 8), in blocks of `BLOCK_EVENTS // k` pixels, their number rounded
+    by `_blocks_of`."""
     counts = data.mask.sum(axis=1)
     need = np.array([max(8, 1 << int(max(c - 1, 0)).bit_length()) for c in counts])
     need = _merge_small_buckets(need)
-    buckets, rows = [], []
-    start = 0
+    buckets, slots = [], np.zeros(counts.size, np.int64)
+    start = offset = 0
     while start < counts.size:
         k = int(need[start])
         stop = start + int(np.sum(need[start:] == k))
@@ -264,8 +288,8 @@ def _bucketed(data: ChartData, dtype):
         # pads and reshapes were ~40 small compilations (~1 s) in a new process.
         host = tuple(a[:, :k] if a.ndim == 2 else a for a in _host_lists(part, dtype))
         n = stop - start
-        block = int(max(1, min(n, BLOCK_EVENTS // k)))
-        n_blocks = -(-n // block)
+        block = max(1, BLOCK_EVENTS // k)
+        n_blocks = _blocks_of(n, block)
         pad = n_blocks * block - n
 
         def cut(a, pad=pad, n_blocks=n_blocks, block=block):
@@ -273,18 +297,29 @@ def _bucketed(data: ChartData, dtype):
             return jnp.asarray(a.reshape((n_blocks, block) + a.shape[1:]))
 
         buckets.append(tuple(cut(a) for a in host))
-        rows.append((start, stop))
+        slots[start:stop] = offset + np.arange(n)
+        offset += n_blocks * block
         start = stop
-    return tuple(buckets), tuple(rows)
+    return tuple(buckets), slots
+
+
+def _slots_total(buckets) -> int:
+    """The number of slots (block rows) of all buckets."""
+    return sum(int(b[0].shape[0] * b[0].shape[1]) for b in buckets)
+
+
+def _to_slots(values, slots: np.ndarray, buckets, dtype):
+    """Per-pixel `values` (sorted chart pixels) → the buckets' slots (padding: 0)."""
+    out = np.zeros(_slots_total(buckets), dtype)
+    out[slots] = np.asarray(values)
+    return jnp.asarray(out)
 
 
 def _bucket_keep(keep, fit: _FitData, i: int):
-    """`keep` (one entry per sorted chart pixel) for bucket `i`, as its blocks."""
-    start, stop = fit.bucket_rows[i]
+    """`keep` (one entry per slot) for bucket `i`, as its blocks."""
+    start = _slots_total(fit.buckets[:i])
     shape = fit.buckets[i][0].shape[:2]
-    return jnp.pad(keep[start:stop], (0, shape[0] * shape[1] - (stop - start))).reshape(
-        shape
-    )
+    return keep[start : start + shape[0] * shape[1]].reshape(shape)
 
 
 def _fit_rig(params, fit: _FitData) -> Rig:
@@ -397,7 +432,8 @@ def _prior_residuals(params, fit: _FitData):
 
 @eqx.filter_jit
 def _fit_residuals(params, profile, keep, fit: _FitData):
-    """Event residuals of every (sorted) chart pixel, `(n, k)`, block by block."""
+    """Event residuals of every slot (see :class:`_FitData`), `(slots, k)`, block by
+    block (padding slots: zeros)."""
     tables = _fit_tables(params, fit)
     k = max(b[0].shape[2] for b in fit.buckets)
     out = []
@@ -408,8 +444,7 @@ def _fit_residuals(params, profile, keep, fit: _FitData):
             return _block_residuals(params, tables, block, kb, profile, fit)
 
         res = jax.lax.map(one, (blocks, _bucket_keep(keep, fit, i)))
-        start, stop = fit.bucket_rows[i]
-        res = res.reshape((-1,) + res.shape[2:])[: stop - start]
+        res = res.reshape((-1,) + res.shape[2:])
         out.append(jnp.pad(res, ((0, 0), (0, k - res.shape[1]))))
     return jnp.concatenate(out)
 
@@ -1122,19 +1157,22 @@ def _fit_chart_float64(
         **({"band": jnp.zeros((BAND_KNOTS,), dtype)} if fit_band else {}),
     }
 
-    keep = jnp.ones(data.t_us.shape[0], dtype)  # pixels in the fit (outliers: 0)
     # Everything the residuals read travels as arguments (not closed over), so each
     # compiled function depends on shapes only: one compilation per shape in a
     # process, and the persistent cache serves the next process.
     overlap = band_overlap(rig)
-    buckets, bucket_rows = _bucketed(data, dtype)
+    buckets, slots = _bucketed(data, dtype)
+    n_px = data.t_us.shape[0]
+    # Pixels in the fit (outliers: 0), in the buckets' slots (see _FitData).
+    keep = ones = _to_slots(np.ones(n_px), slots, buckets, dtype)
     band = _band_start(rig, dtype) if fit_band else None
     spectra = jnp.asarray(data.spectra, dtype)
 
     def fit_data(band, gate):
-        return _FitData(rig, basis, buckets, spectra, fixed_traces, overlap.values,
-                        band, gate, overlap.lo_nm, overlap.step_nm, fit_baseline,
-                        bucket_rows)  # fmt: skip
+        # (the band enters through `overlap` or `band`: see without_band_profile)
+        return _FitData(without_band_profile(rig), basis, buckets, spectra,
+                        fixed_traces, overlap.values, band, gate, overlap.lo_nm,
+                        overlap.step_nm, fit_baseline)  # fmt: skip
 
     def lm_args(u, scale, fit, profile, tol):  # (`keep`: the current one)
         return (u, scale, jnp.asarray(profile), keep, fit, max_steps, bool(verbose), tol)
@@ -1147,15 +1185,14 @@ def _fit_chart_float64(
         return call_exported("calibrate_lm", _lm_stage, lm_args(*a))
 
     fit = fit_data(band, jnp.ones((), dtype))
-    ones = jnp.ones_like(keep)
-
-    def residuals(params, profile, keep):
+    def residuals(params, profile, keep):  # (n_px, k): the sorted chart pixels'
         # (`profile` as an array: one program for both kinds of residual)
         args = (params, jnp.asarray(profile), keep, fit)
-        return np.asarray(call_exported("calibrate_residuals", _fit_residuals, args))
+        r = call_exported("calibrate_residuals", _fit_residuals, args)
+        return np.asarray(r)[slots]
 
     def rms_of(sum_sq, keep):  # over the events of the kept pixels
-        n = int((data.mask & (np.asarray(keep) > 0)[:, None]).sum())
+        n = int((data.mask & (np.asarray(keep)[slots] > 0)[:, None]).sum())
         return float(np.sqrt(sum_sq / max(n, 1)))
 
     def sum_sq(res):
@@ -1243,10 +1280,10 @@ def _fit_chart_float64(
             bad_px = _outlier_pixels(r, data.mask)
             outlier_pixels = int(bad_px.sum())
             if 0 < outlier_pixels < 0.5 * bad_px.size:
-                keep = jnp.asarray(~bad_px, dtype)
+                keep = _to_slots(~bad_px, slots, buckets, dtype)
     res_final = residuals(params, per_pixel, keep)
     rms = rms_of(sum_sq(res_final), keep)
-    kept = np.asarray(keep) > 0
+    kept = np.asarray(keep)[slots] > 0
     data = dataclasses.replace(data, mask=data.mask & kept[:, None])
     fitted = _apply(params, rig, basis)
     if not fit_baseline:

@@ -34,15 +34,15 @@ def system(request):
         old = F.BLOCK_EVENTS
         F.BLOCK_EVENTS = 64  # several blocks per bucket
         try:
-            buckets, rows = F._bucketed(data, jnp.float64)
+            buckets, slots = F._bucketed(data, jnp.float64)
         finally:
             F.BLOCK_EVENTS = old
         ov = band_overlap(rig)
         band = F._band_start(rig, jnp.float64) if request.param else None
         fit = F._FitData(rig, F._response_basis(rig, 2), buckets,
                          jnp.asarray(data.spectra), None, ov.values, band,
-                         jnp.ones((), jnp.float64), ov.lo_nm, ov.step_nm, True,
-                         rows)  # fmt: skip
+                         jnp.ones((), jnp.float64), ov.lo_nm, ov.step_nm,
+                         True)  # fmt: skip
         key = jr.key(1)
         u = {  # away from the start, so every derivative is non-trivial
             "log_on": jnp.asarray(0.02),
@@ -56,7 +56,9 @@ def system(request):
         if request.param:
             u["band"] = 0.1 * jr.normal(jr.key(2), (F.BAND_KNOTS,), jnp.float64)
         scale = jax.tree.map(lambda a: 1.5 + jnp.zeros_like(a), u)
-        keep = jnp.ones(data.t_us.shape[0]).at[3].set(0.0)  # one pixel dropped
+        keep = np.ones(data.t_us.shape[0])
+        keep[3] = 0.0  # one pixel dropped
+        keep = F._to_slots(keep, slots, buckets, np.float64)  # (the fit's layout)
         yield u, scale, keep, fit, data, buckets
 
 
