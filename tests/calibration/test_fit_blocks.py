@@ -190,3 +190,43 @@ def test_log_steps_share_one_program_across_spectra_and_pixel_counts(
                 direct = np.asarray(C.chart_log_steps(rig, sub))
                 np.testing.assert_allclose(steps, direct, rtol=1e-10, atol=1e-12)
     assert len(shapes) == 1, shapes
+
+
+def test_new_captures_of_a_chart_share_the_fits_programs():
+    """The fit's programs are keyed by their inputs' structure and shapes
+    (`call_exported`): two captures of one chart (other thresholds, other noise)
+    and another band profile in the start give the same, so a user's next
+    calibration runs the programs the last one compiled (README, Performance,
+    "Calibration's memory and time"). The pixels' slots are a one-to-one placement."""
+    from evhsi_jax._calibrate._chart import without_band_profile
+
+    h, w = 12, 8
+    chart = ev.load_scene("gray-chart", (h, w))
+    truth = ev.Rig(threshold_noise=0.02)
+    sigs = []
+    for seed, start in ((1, ev.Rig()), (2, ev.Rig().with_band_profile("skewed"))):
+        events = ev.simulate(chart, truth, sweeps=2, key=jr.key(seed))
+        with jax.enable_x64(True):
+            rig = F._with_column_offsets(start, w).astype(jnp.float64)
+            data = F._by_event_count(chart_data(events, chart, rig, rows_per_label=None))
+            buckets, slots = F._bucketed(data, jnp.float64)
+            n = data.t_us.shape[0]
+            assert np.unique(slots).size == n and slots.max() < F._slots_total(buckets)
+            ov = band_overlap(rig)
+            fit = F._FitData(without_band_profile(rig), F._response_basis(rig, 2),
+                             buckets, jnp.asarray(data.spectra), None, ov.values,
+                             None, jnp.ones((), jnp.float64), ov.lo_nm, ov.step_nm,
+                             True)  # fmt: skip
+            keep = F._to_slots(np.ones(n), slots, buckets, np.float64)
+            leaves, treedef = jax.tree.flatten((keep, fit))
+            sigs.append((treedef, [np.shape(a) for a in leaves], data.mask.sum()))
+    assert sigs[0][2] != sigs[1][2]  # other captures: other event counts
+    assert sigs[0][:2] == sigs[1][:2]
+
+
+def test_block_counts_are_rounded_to_few_values():
+    small = {F._blocks_of(n, 1) for n in range(1, F.SMALL_BUCKET_BLOCKS + 1)}
+    assert small == {1, 2, 4, 8, 16}
+    for need in range(F.SMALL_BUCKET_BLOCKS + 1, 5000, 7):
+        got = F._blocks_of(need * 64 - 5, 64)  # (need blocks of 64 pixels)
+        assert need <= got <= need * (1 + 1 / 16)
