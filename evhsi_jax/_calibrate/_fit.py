@@ -229,6 +229,17 @@ class _FitData(eqx.Module):
     fit_baseline: bool = eqx.field(static=True)
 
 
+def _fit_data(rig, basis, buckets, spectra, fixed_traces, overlap, band, gate,
+              fit_baseline) -> _FitData:  # fmt: skip
+    """The fit's :class:`_FitData` (`overlap`: the rig's :func:`band_overlap`). Its
+    rig has no band profile: the band enters through `overlap` or `band`, and the
+    profile, a static value, would put its values into every program's key (see
+    :func:`without_band_profile`)."""
+    return _FitData(without_band_profile(rig), basis, buckets, jnp.asarray(spectra),
+                    fixed_traces, overlap.values, band, gate, overlap.lo_nm,
+                    overlap.step_nm, fit_baseline)  # fmt: skip
+
+
 def _by_event_count(data: ChartData) -> ChartData:
     """The chart pixels sorted by their number of events, most first."""
     return data.subset(np.argsort(-data.mask.sum(axis=1), kind="stable"))
@@ -1169,10 +1180,8 @@ def _fit_chart_float64(
     spectra = jnp.asarray(data.spectra, dtype)
 
     def fit_data(band, gate):
-        # (the band enters through `overlap` or `band`: see without_band_profile)
-        return _FitData(without_band_profile(rig), basis, buckets, spectra,
-                        fixed_traces, overlap.values, band, gate, overlap.lo_nm,
-                        overlap.step_nm, fit_baseline)  # fmt: skip
+        return _fit_data(rig, basis, buckets, spectra, fixed_traces, overlap, band,
+                         gate, fit_baseline)  # fmt: skip
 
     def lm_args(u, scale, fit, profile, tol):  # (`keep`: the current one)
         return (u, scale, jnp.asarray(profile), keep, fit, max_steps, bool(verbose), tol)
@@ -1185,7 +1194,8 @@ def _fit_chart_float64(
         return call_exported("calibrate_lm", _lm_stage, lm_args(*a))
 
     fit = fit_data(band, jnp.ones((), dtype))
-    def residuals(params, profile, keep):  # (n_px, k): the sorted chart pixels'
+
+    def residuals(params, profile, keep):  # (n_px, k), the sorted chart pixels
         # (`profile` as an array: one program for both kinds of residual)
         args = (params, jnp.asarray(profile), keep, fit)
         r = call_exported("calibrate_residuals", _fit_residuals, args)

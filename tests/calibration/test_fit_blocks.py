@@ -37,12 +37,10 @@ def system(request):
             buckets, slots = F._bucketed(data, jnp.float64)
         finally:
             F.BLOCK_EVENTS = old
-        ov = band_overlap(rig)
         band = F._band_start(rig, jnp.float64) if request.param else None
-        fit = F._FitData(rig, F._response_basis(rig, 2), buckets,
-                         jnp.asarray(data.spectra), None, ov.values, band,
-                         jnp.ones((), jnp.float64), ov.lo_nm, ov.step_nm,
-                         True)  # fmt: skip
+        fit = F._fit_data(rig, F._response_basis(rig, 2), buckets, data.spectra, None,
+                          band_overlap(rig), band, jnp.ones((), jnp.float64),
+                          True)  # fmt: skip
         key = jr.key(1)
         u = {  # away from the start, so every derivative is non-trivial
             "log_on": jnp.asarray(0.02),
@@ -198,8 +196,6 @@ def test_new_captures_of_a_chart_share_the_fits_programs():
     and another band profile in the start give the same, so a user's next
     calibration runs the programs the last one compiled (README, Performance,
     "Calibration's memory and time"). The pixels' slots are a one-to-one placement."""
-    from evhsi_jax._calibrate._chart import without_band_profile
-
     h, w = 12, 8
     chart = ev.load_scene("gray-chart", (h, w))
     truth = ev.Rig(threshold_noise=0.02)
@@ -212,11 +208,9 @@ def test_new_captures_of_a_chart_share_the_fits_programs():
             buckets, slots = F._bucketed(data, jnp.float64)
             n = data.t_us.shape[0]
             assert np.unique(slots).size == n and slots.max() < F._slots_total(buckets)
-            ov = band_overlap(rig)
-            fit = F._FitData(without_band_profile(rig), F._response_basis(rig, 2),
-                             buckets, jnp.asarray(data.spectra), None, ov.values,
-                             None, jnp.ones((), jnp.float64), ov.lo_nm, ov.step_nm,
-                             True)  # fmt: skip
+            fit = F._fit_data(rig, F._response_basis(rig, 2), buckets, data.spectra,
+                              None, band_overlap(rig), None, jnp.ones((), jnp.float64),
+                              True)  # fmt: skip
             keep = F._to_slots(np.ones(n), slots, buckets, np.float64)
             leaves, treedef = jax.tree.flatten((keep, fit))
             sigs.append((treedef, [np.shape(a) for a in leaves], data.mask.sum()))
