@@ -1457,44 +1457,26 @@ def _lane_lowpass_rows(
     jn = 0
     dtw = dt / d_w
     for j in range(g_end):
-        e = _u(4 * j)
-        a0, a1, a2, a3 = lpl[1, e], lpl[1, e + _u(1)], lpl[1, e + _u(2)], lpl[1, e + _u(3)]
-        s0, s1, s2, s3 = st[0], st[1], st[2], st[3]
-        y0, y1, y2, y3 = s0 * vl[0], s1 * vl[1], s2 * vl[2], s3 * vl[3]  # F before
-        t0, t1, t2, t3 = s0 * a0, s1 * a1, s2 * a2, s3 * a3
-        if (
-            a0 < 1e-200 or a1 < 1e-200 or a2 < 1e-200 or a3 < 1e-200
-            or t0 < 1e-200 or t1 < 1e-200 or t2 < 1e-200 or t3 < 1e-200
-        ):  # a lane restarts or renormalises (rare): lane by lane
-            for lane in range(4):
-                alpha = lpl[1, 4 * j + lane]
-                scale = st[lane]
-                if alpha < 1e-200:  # F forgets its past: restart
+        for lane in range(4):
+            alpha = lpl[1, 4 * j + lane]
+            scale = st[lane]
+            y_prev = scale * vl[lane]
+            if alpha < 1e-200:  # F forgets its past: restart
+                for c in range(m + 1):
+                    vl[4 * c + lane] = 0.0
+                scale = 1.0
+            else:
+                if scale * alpha < 1e-200:  # renormalise V before S underflows
                     for c in range(m + 1):
-                        vl[4 * c + lane] = 0.0
+                        vl[4 * c + lane] *= scale
                     scale = 1.0
-                else:
-                    if scale * alpha < 1e-200:  # renormalise V before S underflows
-                        for c in range(m + 1):
-                            vl[4 * c + lane] *= scale
-                        scale = 1.0
-                    scale *= alpha
-                st[lane] = scale
-            s0, s1, s2, s3 = st[0], st[1], st[2], st[3]
-        else:  # the common step: four lanes, no branch
-            s0, s1, s2, s3 = t0, t1, t2, t3
-            st[0], st[1], st[2], st[3] = s0, s1, s2, s3
-        i0, i1, i2, i3 = 1.0 / s0, 1.0 / s1, 1.0 / s2, 1.0 / s3
-        g0, g1, g2, g3 = (1.0 - a0) * i0, (1.0 - a1) * i1, (1.0 - a2) * i2, (1.0 - a3) * i3
-        l0, l1, l2, l3 = lpl[2, e], lpl[2, e + _u(1)], lpl[2, e + _u(2)], lpl[2, e + _u(3)]
-        vl[0] += g0 * l0
-        vl[1] += g1 * l1
-        vl[2] += g2 * l2
-        vl[3] += g3 * l3
-        st[4] = g0 * lpl[3, e] - (y0 - l0) * a0 * dtw * i0
-        st[5] = g1 * lpl[3, e + _u(1)] - (y1 - l1) * a1 * dtw * i1
-        st[6] = g2 * lpl[3, e + _u(2)] - (y2 - l2) * a2 * dtw * i2
-        st[7] = g3 * lpl[3, e + _u(3)] - (y3 - l3) * a3 * dtw * i3
+                scale *= alpha
+            inv = 1.0 / scale
+            wgt = (1.0 - alpha) * inv
+            st[lane] = scale
+            lg = lpl[2, 4 * j + lane]
+            vl[lane] += wgt * lg
+            st[4 + lane] = wgt * lpl[3, 4 * j + lane] - (y_prev - lg) * alpha * dtw * inv
         lo = cspan[jn, 0]
         hi = cspan[jn, 1]
         if hi > lo:
