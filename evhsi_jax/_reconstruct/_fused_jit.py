@@ -1742,7 +1742,7 @@ def solve_pixels(
     d_w = par[P_DW]
     lowpass = noisy_model and d_w > 0.0 and sweeps <= 4 and ipar[I_LOWPASS] > 0
     lp_passes = ipar[I_LOWPASS] if lowpass else 0
-    nbuf = 2 * kmax if lowpass else 1
+    n_query = 2 * kmax if lowpass else 1  # per pixel: each event's time, its reference
     n_grid = sweeps * ipar[I_SAMPLES] + 1 if lowpass else 1
     lp_f = np.zeros((4, n_grid))
     # The band on one sweep's time grid of the column last used (_column_grid).
@@ -1820,8 +1820,8 @@ def solve_pixels(
     fqs = np.zeros((ng, kmax if lane_lp else 1, m + 1))
     # the queries' lists per grid point, for either (_lowpass_queries)
     qh = np.zeros(n_grid, np.int64)
-    apps = np.zeros((2 * ng * nbuf, 3), np.int64)
-    a_w = np.zeros(2 * ng * nbuf)
+    apps = np.zeros((2 * ng * n_query, 3), np.int64)  # two shares per query
+    a_w = np.zeros(2 * ng * n_query)
     lpl = np.zeros((4, LANES * n_grid if lane_lp else 1))
     x4 = np.zeros(LANES * m)
     st = np.zeros(8)  # _lane_lowpass_rows' work space (also _lowpass_rows' `sc`)
