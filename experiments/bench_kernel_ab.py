@@ -13,12 +13,15 @@ the events screened and listed per pixel once (today's tree). Each kernel
 tree) solves all pixels on `--threads` threads: one warm-up call (numba compiles),
 then `--repeats` rounds, each kernel once per round. The earlier kernel must take
 the same arguments as today's `solve_pixels` (true since the kernel's `par`/`ipar`
-layout of 2026-11).
+layout of 2026-11). Each kernel gets the band spans its own tree computed: from its
+`TRIM` (each band's entries above that fraction of the band's peak, since the
+eighteenth session) or, for a kernel without one, the rule before it (above 1e-10 of
+the whole table's peak).
 
 Printed and written: µs per pixel (minimum and median of the rounds), the ratio of
 the two kernels' times in each round and its median (each round runs both back to
 back, so this ratio is the least exposed to the machine's drift), the largest
-difference between the two answers, the same run's float32 matmul GFLOP/s.
+difference between the two answers and their SAM (largest, 99.9 %), the same run's float32 matmul GFLOP/s.
 
     python experiments/bench_kernel_ab.py --old 1c1a37c [--sensor ideal|noise|realistic]
         [--size 96x144] [--repeats 5] [--threads 1] [--out PATH]
@@ -58,6 +61,27 @@ def load_kernel(source: str, name: str, folder: Path):
     return mod
 
 
+def with_spans(prob, mod):
+    """`prob` (a `FusedProblem`) with the band spans of kernel module `mod`'s tree (see
+    the module docstring); a shallow copy."""
+    import copy
+
+    tab = prob.table
+    m = tab.shape[1]
+    trim = getattr(mod, "TRIM", None)
+    if trim is None:  # the rule before the eighteenth session
+        big = np.abs(tab) > 1e-10 * np.abs(tab).max()
+    else:
+        big = np.abs(tab) > trim * np.abs(tab).max(axis=1, keepdims=True)
+    any_ = big.any(axis=1)
+    out = copy.copy(prob)
+    out.span_lo = np.where(any_, np.argmax(big, axis=1), m).astype(np.int64)
+    out.span_hi = np.where(any_, m - np.argmax(big[:, ::-1], axis=1), 0).astype(
+        np.int64
+    )
+    return out
+
+
 def kernel_source(rev: str | None) -> str:
     """The kernel's source at git revision `rev` (None: the working tree)."""
     return source_at(rev, KERNEL)
@@ -90,6 +114,8 @@ def main():
             "new": load_kernel(new_src, "kernel_new", Path(tmp)),
         }
 
+        probs = {id(m): with_spans(prob, m) for m in kernels.values()}
+
         def solve(mod):
             _fused_jit = sys.modules.get("evhsi_jax._reconstruct._fused_jit")
             sys.modules["evhsi_jax._reconstruct._fused_jit"] = mod
@@ -99,7 +125,7 @@ def main():
             try:
                 t = time.perf_counter()
                 x, _, steps = _fused.solve_fused(
-                    prob, sel, *setup.args, threads=args.threads
+                    probs[id(mod)], sel, *setup.args, threads=args.threads
                 )
                 return time.perf_counter() - t, x, steps
             finally:
@@ -112,7 +138,13 @@ def main():
             for k, m in kernels.items():
                 times[k].append(solve(m)[0])
     gflops = matmul_gflops()
-    dx = float(np.nanmax(np.abs(answers["new"][0] - answers["old"][0])))
+    xn, xo = answers["new"][0], answers["old"][0]
+    dx = float(np.nanmax(np.abs(xn - xo)))
+    cos = np.sum(xn * xo, 1) / np.maximum(
+        np.linalg.norm(xn, axis=1) * np.linalg.norm(xo, axis=1), 1e-300
+    )
+    sam = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    sam_max, sam_999 = float(np.nanmax(sam)), float(np.nanquantile(sam, 0.999))
     rows = {}
     for k in kernels:
         us = [1e6 * t / sel.size for t in times[k]]
@@ -127,7 +159,8 @@ def main():
     ratio_rounds = statistics.median(per_round)
     print(f"per-round old/new: median {ratio_rounds:.2f}x "
           f"({', '.join(f'{v:.2f}' for v in per_round)})")  # fmt: skip
-    print(f"old/new {ratio:.2f}x; max |x_new - x_old| {dx:.2e}; "
+    print(f"old/new {ratio:.2f}x; max |x_new - x_old| {dx:.2e}; SAM new to old: "
+          f"max {sam_max:.1e}°, 99.9 % {sam_999:.1e}°; "
           f"{sel.size} pixels, {args.threads} thread(s), sensor {args.sensor}; "
           f"float32 matmul {gflops:.1f} GFLOP/s")  # fmt: skip
     if args.out:
@@ -137,6 +170,7 @@ def main():
             "median_ratio_old_over_new": ratio,
             "per_round_ratio_old_over_new": per_round,
             "median_per_round_ratio": ratio_rounds, "max_abs_diff": dx,
+            "sam_deg_max": sam_max, "sam_deg_999": sam_999,
             "matmul_gflops": gflops,
         }, indent=2))  # fmt: skip
 

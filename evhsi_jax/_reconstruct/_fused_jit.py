@@ -60,6 +60,15 @@ P_BASE_REL, P_LOG_EPS, P_LP_TOL = range(26, 29)
 N_PAR = 29
 I_SWEEPS, I_POINTS, I_TARGET, I_NORM, I_RELEASE, I_ITERS, I_NOISE, I_ROBUST = range(8)
 I_LOWPASS, I_SAMPLES, I_LANES, I_LONG = range(8, 12)
+#: A row's entries below this fraction of its largest count as zero: each band of the
+#: table (the channels a band centre lights, `_fused.FusedProblem`'s `span_lo`,
+#: `span_hi`) and each row of the photoreceptor pass (`_lowpass_finish`). 1e-7 is
+#: about one float32 ulp of the row's peak; on the paper's rig it cuts a band's span
+#: from ~20 channels to ~16, and with it Q's envelope (1.07× the ideal kernel). Answers
+#: move by ≤ 0.002° SAM against the untrimmed problem; at 1e-6 (1.11×) two pixels of
+#: the narrow-peak test scene, whose floors are near-degenerate, moved by 0.27°
+#: (Performance log, "Eighteenth session").
+TRIM = 1e-7
 #: Pixels whose factorisations run side by side, one per SIMD lane (float64 × 4:
 #: AVX2). The lane code is written out for four lanes.
 LANES = 4
@@ -1333,7 +1342,7 @@ def _lowpass_finish(fq, step, x0, w_log, k, evr, evc, evlo, evhi):
     queries, `fq[i]` for event i (channel 0: the filtered log, then the channels).
     Sums and the largest entry in four parts each, so that the loops vectorise (one
     running sum was a chain of dependent additions, ~20 % of the photoreceptor
-    pass); the entries below 1e-14 of the largest are cut at both ends of the row."""
+    pass); the entries below `TRIM` of the largest are cut at both ends of the row."""
     m = x0.size
     m4 = m // 4
     for i in range(k):
@@ -1359,7 +1368,7 @@ def _lowpass_finish(fq, step, x0, w_log, k, evr, evc, evlo, evhi):
             v0 = d[c + _u(1)]
             s0 += v0 * x0[c]
             b0 = max(b0, abs(v0))
-        cut = 1e-14 * max(max(b0, b1), max(b2, b3))
+        cut = TRIM * max(max(b0, b1), max(b2, b3))
         lo = m
         hi = 0
         for c in range(m):  # (integer minimum and maximum: vectorised)

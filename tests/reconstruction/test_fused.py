@@ -134,9 +134,13 @@ def _lanes_1_and_4(rig, events, info, sweeps):
 
 
 def _assert_same_answers(answers):
+    # The lanes group their dot products differently (the last bits of each differ);
+    # an ill-conditioned pixel (cond(Q) ~1e8) amplifies that up to ~1e-8: the
+    # answers must agree far inside it. (1.5e-11 × max on the peaks since the bands'
+    # trim of 1e-7, whose narrower envelope changes where the sums start.)
     (x1, kkt1, steps1), (x4, kkt4, steps4) = answers
     np.testing.assert_array_equal(steps4, steps1)
-    np.testing.assert_allclose(x4, x1, rtol=0, atol=1e-11 * np.abs(x1).max())
+    np.testing.assert_allclose(x4, x1, rtol=0, atol=1e-10 * np.abs(x1).max())
     np.testing.assert_allclose(kkt4, kkt1, rtol=0, atol=1e-9)
 
 
