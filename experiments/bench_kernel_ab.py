@@ -21,7 +21,8 @@ the whole table's peak).
 Printed and written: µs per pixel (minimum and median of the rounds), the ratio of
 the two kernels' times in each round and its median (each round runs both back to
 back, so this ratio is the least exposed to the machine's drift), the largest
-difference between the two answers and their SAM (largest, 99.9 %), the same run's float32 matmul GFLOP/s.
+difference between the two answers and their SAM (largest, 99.9 %), the same run's
+float32 matmul GFLOP/s.
 
     python experiments/bench_kernel_ab.py --old 1c1a37c [--sensor ideal|noise|realistic]
         [--size 96x144] [--repeats 5] [--threads 1] [--out PATH]
