@@ -4,7 +4,7 @@ where it is formed (numba), on every core.
 The JAX path forms every pixel's rows densely (M+1 wide), their Gram matrix by a
 batched matrix product and then solves; on a CPU the dense Gram is most of the time,
 although a row touches only the channels the band overlaps at its two or three times
-(~20 of 72 on the paper's rig). Here, per pixel and in float64:
+(~16 of 72 on the paper's rig). Here, per pixel and in float64:
 
 1. each row is added into Q as the outer product of its *span* (the channels where its
    bands are above `_fused_jit.TRIM` × the band's own peak), Q's envelope (the first

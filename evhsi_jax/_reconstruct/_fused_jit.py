@@ -11,7 +11,7 @@ vector register: each pixel's rows are formed on its own (band lookups, weights)
 the four pixels' Q are accumulated side by side in the *lane layout* (`_lane_rows`,
 four rows per pass over Q), their priors added, and the four systems factorised and
 solved together (`_solve_lanes`). The loops of both are short (a row's span, an
-envelope row: ~20 entries), and their fixed cost — loop set-up, mispredicted exits —
+envelope row: ~16–21 entries), and their fixed cost — loop set-up, mispredicted exits —
 is then paid once for four pixels. A pixel whose minimiser has a negative channel is
 taken out of the lane layout for its active-set steps. Event rows whose reference
 lies in the sweep before (blue against red: `LONG_SPAN`) are left out of the lanes'
@@ -631,7 +631,7 @@ ROWS_PER_PASS = 4
 #: An event row whose reference lies in the sweep before — a sweep's first event
 #: against the previous sweep's last one (a carried reference on the per-sweep path,
 #: every sweep boundary of a whole-file reconstruction) — and which spans more than
-#: this many channels (a band segment spans ~20) is *long*: its two band segments
+#: this many channels (a band segment spans ~16) is *long*: its two band segments
 #: lie at the spectrum's two ends (blue against red). Added into Q it widens Q's
 #: envelope from its first column down every row it reaches: on the second sweep of
 #: a 96×144 ColorChecker from 22.3 to 35.5 columns per row on average, 2.8× the
@@ -1755,7 +1755,7 @@ def solve_pixels(
     n_grid = sweeps * ipar[I_SAMPLES] + 1 if lowpass else 1
     lp_f = np.zeros((4, n_grid))
     # The band on one sweep's time grid of the column last used (_column_grid).
-    # (a row holds its span only: ~22 of M values, a third of the memory to cache)
+    # (a row holds its span only: ~18 of M values, a quarter of the memory to cache)
     n_col = ipar[I_SAMPLES] if lowpass else 1
     w_col = 1
     for b in range(ntab - 1 if lowpass else 0):
