@@ -12,6 +12,7 @@ from ._dynamic import moving_chart as moving_chart
 from ._dynamic import truth_cubes as truth_cubes
 from ._event_stream import EventStream as EventStream
 from ._event_stream import check_roi as check_roi
+from ._illumination import BAND_TRIM as BAND_TRIM
 from ._illumination import TABLE_STEP_NM as TABLE_STEP_NM
 from ._illumination import BandTable as BandTable
 from ._illumination import band_overlap as band_overlap
@@ -22,6 +23,7 @@ from ._illumination import lookup as lookup
 from ._illumination import sampled_profile_overlap as sampled_profile_overlap
 from ._illumination import sampled_profile_product as sampled_profile_product
 from ._illumination import sweep_times_us as sweep_times_us
+from ._illumination import trim_rows as trim_rows
 from ._rig import COLUMN_SPREAD as COLUMN_SPREAD
 from ._rig import SENSOR_PRESETS as SENSOR_PRESETS
 from ._rig import Rig as Rig

@@ -43,6 +43,11 @@ TABLE_STEP_NM = 0.1
 #: Bands up to this FWHM share one table range (3 × 50 nm beyond the channels), also
 #: when the FWHM is traced.
 TRACED_FWHM_BOUND_NM = 50.0
+#: `BandTable.trimmed`'s default: a band's entries below this fraction of its own
+#: peak count as zero (about one float32 ulp of the peak). The reconstruction's fused
+#: CPU kernel and CUDA kernel work on the channels a row touches, and a Gaussian's
+#: float32 tails reach ~28 channels where 1e-7 of the peak leaves ~16.
+BAND_TRIM = 1e-7
 
 
 def fwhm_to_sigma(fwhm_nm):
@@ -86,10 +91,33 @@ class BandTable:
         """Sum the fine sub-bins into channels: the reconstruction's A(λc) table."""
         return BandTable(_sum_sub_bins(self.values, sub), self.lo_nm, self.step_nm)
 
+    def trimmed(self, rel: float = BAND_TRIM) -> BandTable:
+        """The table with each band's entries (row `i`) below `rel` of that band's
+        largest magnitude set to zero: what the reconstruction's span-based kernels
+        solve with (:mod:`evhsi_jax._reconstruct._fused`)."""
+        return BandTable(trim_rows(self.values, rel), self.lo_nm, self.step_nm)
+
 
 @functools.partial(jax.jit, static_argnums=1)  # one compiled call, not two eager ops
 def _sum_sub_bins(v, sub: int):
     return v.reshape(v.shape[0], v.shape[1] // sub, sub).sum(-1)
+
+
+def trim_rows(v, rel: float = BAND_TRIM):
+    """`v` `(n, M)` with each row's entries below `rel` of the row's largest magnitude
+    set to zero (`BandTable.trimmed`'s values): in NumPy for a NumPy array (the fused
+    CPU kernel's float64 copy of a table: no compilation), else one compiled JAX
+    call."""
+    if isinstance(v, np.ndarray):
+        a = np.abs(v)
+        return np.where(a > rel * a.max(axis=1, keepdims=True), v, 0.0).astype(v.dtype)
+    return _trim_rows_jax(v, rel)
+
+
+@jax.jit
+def _trim_rows_jax(v, rel):
+    a = jnp.abs(v)
+    return jnp.where(a > rel * jnp.max(a, axis=1, keepdims=True), v, jnp.zeros_like(v))
 
 
 jax.tree_util.register_dataclass(

@@ -7,8 +7,8 @@ although a row touches only the channels the band overlaps at its two or three t
 (~16 of 72 on the paper's rig). Here, per pixel and in float64:
 
 1. each row is added into Q as the outer product of its *span* (the channels where its
-   bands are above `_fused_jit.TRIM` × the band's own peak), Q's envelope (the first
-   touched column of each row) tracked as it grows;
+   bands are above `BAND_TRIM` (1e-7) × the band's own peak, `BandTable.trimmed`),
+   Q's envelope (the first touched column of each row) tracked as it grows;
 2. the spectral prior (banded for `spec_kind="d2"`) and the ridge are added;
 3. an *envelope* Cholesky (fill-in stays inside the envelope) gives the unconstrained
    minimiser; where a bound is violated the primal active-set method of
@@ -17,11 +17,12 @@ although a row touches only the channels the band overlaps at its two or three t
 The arithmetic is float64 whatever the rig's dtype (a float32 input is exact in it):
 this is the issue's "mixed precision", and it makes the answer the float64 solve of
 the same events rather than one defined by the rounding of a float32 Gram matrix with
-cond(Q) up to ~1e8. Entries of a band (a row of the band table) below `TRIM` (1e-7) of
-that band's peak are treated as zero, and so are a photoreceptor row's below 1e-7 of
-its largest; that is the only difference to the dense problem of
-:func:`._problem.pixel_system` in float64 (tests compare the two: ≤ 0.002° SAM on the
-tests' scenes; the trim narrows Q's envelope).
+cond(Q) up to ~1e8. Entries of a band (a row of the band table) below 1e-7 of that
+band's peak are treated as zero (`BandTable.trimmed`; the `cuda` backend solves with
+the same trimmed table), and so are a photoreceptor row's below 1e-7 of its largest;
+that is the only difference to the dense problem of :func:`._problem.pixel_system` in
+float64 (tests compare the two: ≤ 0.002° SAM on the tests' scenes; the trim narrows
+Q's envelope).
 
 Scope: the whole per-pixel problem `reconstruct` solves with the active-set solver
 and the linear table lookup — the ideal sensor's, and with a calibrated noise model
@@ -45,7 +46,7 @@ import threading
 import numpy as np
 
 from .._base import numba_available, readonly, shard
-from .._model import Rig
+from .._model import Rig, trim_rows
 from ._problem import (
     INT_TARGETS,
     ProblemConfig,
@@ -85,16 +86,16 @@ class FusedProblem:
     def __init__(self, rig: Rig, table, cfg: ProblemConfig, spec, width: int,
                  column_offsets_us: np.ndarray, sweeps: int, noise=None, *,
                  lanes: int | None = None, long_rows: bool = True):  # fmt: skip
-        from ._fused_jit import LANES, N_PAR, TRIM  # (numba: only when it runs)
+        from ._fused_jit import LANES, N_PAR  # (numba: only when the fused path runs)
 
         if lanes not in (None, 1, LANES):
             raise ValueError(f"lanes must be 1 or {LANES}, got {lanes!r}")
 
-        tab = np.asarray(table.values, np.float64)
+        # Each band's span: its channels above BAND_TRIM of its own peak (the CUDA
+        # backend's rows come from the same trimmed table).
+        tab = trim_rows(np.asarray(table.values, np.float64))
         m = tab.shape[1]
-        # Each band's span: its channels above TRIM of its own peak.
-        peak = np.max(np.abs(tab), axis=1, keepdims=True) if tab.size else 0.0
-        big = np.abs(tab) > TRIM * peak
+        big = tab != 0.0
         any_ = big.any(axis=1)
         self.span_lo = np.where(any_, np.argmax(big, axis=1), m).astype(np.int64)
         self.span_hi = np.where(any_, m - np.argmax(big[:, ::-1], axis=1), 0).astype(

@@ -44,6 +44,7 @@ from typing import no_type_check
 import numpy as np
 
 from .._base import njit as _njit
+from .._model import BAND_TRIM
 
 #: Every function of the kernel divides as NumPy does (`error_model="numpy"`: a
 #: division by zero gives inf or NaN, which the factorisation's pivot tests and the
@@ -61,14 +62,14 @@ N_PAR = 29
 I_SWEEPS, I_POINTS, I_TARGET, I_NORM, I_RELEASE, I_ITERS, I_NOISE, I_ROBUST = range(8)
 I_LOWPASS, I_SAMPLES, I_LANES, I_LONG = range(8, 12)
 #: A row's entries below this fraction of its largest count as zero: each band of the
-#: table (the channels a band centre lights, `_fused.FusedProblem`'s `span_lo`,
-#: `span_hi`) and each row of the photoreceptor pass (`_lowpass_finish`). 1e-7 is
-#: about one float32 ulp of the row's peak; on the paper's rig it cuts a band's span
-#: from ~20 channels to ~16, and with it Q's envelope (1.07× the ideal kernel). Answers
-#: move by ≤ 0.002° SAM against the untrimmed problem; at 1e-6 (1.11×) two pixels of
-#: the narrow-peak test scene, whose floors are near-degenerate, moved by 0.27°
-#: (Performance log, "Eighteenth session").
-TRIM = 1e-7
+#: table (`BandTable.trimmed`: the channels a band centre lights, `_fused.
+#: FusedProblem`'s `span_lo`, `span_hi`) and each row of the photoreceptor pass
+#: (`_lowpass_finish`). 1e-7 is about one float32 ulp of the row's peak; on the
+#: paper's rig it cuts a band's span from ~20 channels to ~16, and with it Q's
+#: envelope (1.08× the ideal kernel). Answers move by ≤ 0.002° SAM against the
+#: untrimmed problem; at 1e-6 (1.11×) two pixels of the narrow-peak test scene, whose
+#: floors are near-degenerate, moved by 0.27° (Performance log, "Eighteenth session").
+TRIM = BAND_TRIM
 #: Pixels whose factorisations run side by side, one per SIMD lane (float64 × 4:
 #: AVX2). The lane code is written out for four lanes.
 LANES = 4
