@@ -49,11 +49,9 @@ KERNEL = "evhsi_jax/_reconstruct/_fused_jit.py"
 
 
 def load_kernel(source: str, name: str, folder: Path):
-    """The kernel module from its source text (its one relative import made
-    absolute), as a module of its own in a temporary folder (compiled afresh)."""
-    text = source.replace(
-        "from .._base import njit", "from evhsi_jax._base import njit"
-    )
+    """The kernel module from its source text (its relative imports of the package
+    made absolute), as a module of its own in a temporary folder (compiled afresh)."""
+    text = source.replace("from ..", "from evhsi_jax.")
     path = folder / f"{name}.py"
     path.write_text(text)
     spec = importlib.util.spec_from_file_location(name, path)

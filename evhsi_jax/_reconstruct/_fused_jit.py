@@ -57,8 +57,8 @@ P_BASE, P_ETA, P_PERIOD, P_SPEED, P_START, P_CURV, P_MID, P_HALF = range(8)
 P_ARRIVE, P_LEAVE, P_TAU0, P_AINT, P_ASPEC, P_RIDGE, P_PEAK, P_TOL = range(8, 16)
 P_SPEC_TRACE, P_TAB_LO, P_INV_STEP = range(16, 19)
 P_SIG_C, P_SIG_T, P_DW, P_FLOOR, P_ADARK, P_RC, P_REJECT = range(19, 26)
-P_BASE_REL, P_LOG_EPS, P_LP_TOL = range(26, 29)
-N_PAR = 29
+P_BASE_REL, P_LOG_EPS, P_LP_TOL, P_INV_PERIOD, P_INV_HALF = range(26, 31)
+N_PAR = 31
 I_SWEEPS, I_POINTS, I_TARGET, I_NORM, I_RELEASE, I_ITERS, I_NOISE, I_ROBUST = range(8)
 I_LOWPASS, I_SAMPLES, I_LANES, I_LONG = range(8, 12)
 #: A row's entries below this fraction of its largest count as zero: each band of the
@@ -90,7 +90,7 @@ def _band_at(t, phase, off, par, ntab):
     the band centre lies outside the table (zero response)."""
     period = par[P_PERIOD]
     local = t + phase
-    local = local - period * math.floor(local / period)
+    local = local - period * math.floor(local * par[P_INV_PERIOD])
     return _band_local(local, off, par, ntab)
 
 
@@ -99,7 +99,7 @@ def _band_at(t, phase, off, par, ntab):
 def _band_local(local, off, par, ntab):
     """:func:`_band_at` at the local time `local` within the sweep (in [0, period))."""
     lin = par[P_START] + par[P_SPEED] * (local + off)
-    u = (lin - par[P_MID]) / par[P_HALF]
+    u = (lin - par[P_MID]) * par[P_INV_HALF]
     centre = lin + par[P_CURV] * (1.0 - u * u)
     pos = (centre - par[P_TAB_LO]) * par[P_INV_STEP]
     if pos < 0.0 or pos > ntab - 1:
