@@ -30,6 +30,7 @@ import numpy as np
 import evhsi_jax as ev
 from evhsi_jax._reconstruct import ProblemConfig, group_pixels
 from evhsi_jax._reconstruct import _pipeline as pipe
+from evhsi_jax._reconstruct._fused import row_spans
 
 
 def work(rig, table, batches, offsets, noise) -> dict:
@@ -48,11 +49,9 @@ def work(rig, table, batches, offsets, noise) -> dict:
         r = np.concatenate(
             [np.asarray(rows.events)[..., :-1], np.asarray(rows.drift)[..., :-1]], axis=1
         )[valid]
-        nz = r != 0
-        has = nz.any(-1)
+        lo, hi = row_spans(r != 0)
+        has = hi > lo
         m = r.shape[-1]
-        lo = np.argmax(nz, -1)
-        hi = m - np.argmax(nz[..., ::-1], -1)
         span = np.where(has, hi - lo, 0)
         s1 += span.sum()
         s2 += (span * span).sum()

@@ -60,6 +60,16 @@ __all__ = ["fused_supported", "FusedProblem", "solve_fused"]
 BLOCK_PIXELS = 512
 
 
+def row_spans(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`(lo, hi)`: each row's (last axis of the boolean `mask`) first True column and
+    one past its last, int64; `(m, 0)` for a row without one."""
+    m = mask.shape[-1]
+    has = mask.any(axis=-1)
+    lo = np.where(has, np.argmax(mask, axis=-1), m)
+    hi = np.where(has, m - np.argmax(mask[..., ::-1], axis=-1), 0)
+    return lo.astype(np.int64), hi.astype(np.int64)
+
+
 def fused_supported(spec, cfg: ProblemConfig) -> str | None:
     """Why the fused path cannot run this reconstruction (None: it can)."""
     if not numba_available():
@@ -86,21 +96,16 @@ class FusedProblem:
     def __init__(self, rig: Rig, table, cfg: ProblemConfig, spec, width: int,
                  column_offsets_us: np.ndarray, sweeps: int, noise=None, *,
                  lanes: int | None = None, long_rows: bool = True):  # fmt: skip
-        from ._fused_jit import LANES, N_PAR  # (numba: only when the fused path runs)
+        from . import _fused_jit as jit  # (numba: only when the fused path runs)
 
-        if lanes not in (None, 1, LANES):
-            raise ValueError(f"lanes must be 1 or {LANES}, got {lanes!r}")
+        if lanes not in (None, 1, jit.LANES):
+            raise ValueError(f"lanes must be 1 or {jit.LANES}, got {lanes!r}")
 
         # Each band's span: its channels above BAND_TRIM of its own peak (the CUDA
         # backend's rows come from the same trimmed table).
         tab = trim_rows(np.asarray(table.values, np.float64))
         m = tab.shape[1]
-        big = tab != 0.0
-        any_ = big.any(axis=1)
-        self.span_lo = np.where(any_, np.argmax(big, axis=1), m).astype(np.int64)
-        self.span_hi = np.where(any_, m - np.argmax(big[:, ::-1], axis=1), 0).astype(
-            np.int64
-        )
+        self.span_lo, self.span_hi = row_spans(tab != 0.0)
         self.table = np.ascontiguousarray(tab)
         self.tabsum = tab.sum(axis=1)
         s = spectral_prior_matrix(m, cfg.m_start_frac, cfg.spec_kind)
@@ -113,7 +118,7 @@ class FusedProblem:
         f = lambda v: float(np.asarray(v))  # noqa: E731
         speed = f(rig.band_speed_nm_per_us)
         arrive, leave = (f(v) for v in lit_interval_us(rig, 0.0))
-        par = np.zeros(N_PAR)
+        par = np.zeros(jit.N_PAR)
         par[:19] = [
             f(rig.baseline_level), f(rig.refractory_us), f(rig.period_us), speed,
             f(rig.sweep_start_nm), f(rig.sweep_curvature_nm),
@@ -132,7 +137,8 @@ class FusedProblem:
         # Reciprocals of the period and of the grid's half width: the band lookups
         # multiply instead of dividing (two divisions per lookup, ~100 lookups per
         # pixel).
-        par[29:31] = [1.0 / par[2], 1.0 / par[7]]
+        par[jit.P_INV_PERIOD] = 1.0 / par[jit.P_PERIOD]
+        par[jit.P_INV_HALF] = 1.0 / par[jit.P_HALF]
         self.par = par
         # The photoreceptor rows run (as the kernel decides, `lowpass`): the kernel
         # then forms each column's time grid once for the column's pixels, so the
@@ -144,7 +150,7 @@ class FusedProblem:
             [sweeps, cfg.int_points, INT_TARGETS.index(cfg.int_target),
              int(cfg.normalise), int(rig.reset_mode == "release"), spec.iters,
              int(noise is not None), cfg.robust_steps, cfg.lowpass_passes,
-             int(rig.samples_per_sweep), LANES if lanes is None else lanes,
+             int(rig.samples_per_sweep), jit.LANES if lanes is None else lanes,
              int(long_rows)],
             np.int64,
         )  # fmt: skip
