@@ -20,7 +20,8 @@ def fused_inputs(sensor: str, size: str) -> SimpleNamespace:
     (`noise`: threshold noise 0.01 and 5 µs jitter only), the true rig as the
     calibration and the true per-pixel thresholds; the events screened and listed per
     pixel. Returns `prob`, `sel` and `args` (the arguments of
-    `_fused.solve_fused` after them)."""
+    `_fused.solve_fused` after them), and `table`: the channel table as it comes from
+    the rig, before `FusedProblem` trims it (float64)."""
     h, w = ev.forward.parse_size(size)
     if sensor == "noise":  # threshold noise and jitter: weights, reweighting
         rig = ev.Rig(threshold_noise=0.01, timestamp_jitter_us=5.0)
@@ -33,9 +34,9 @@ def fused_inputs(sensor: str, size: str) -> SimpleNamespace:
     kept, _, _ = pipe.screen_events(events, rig, t0, noise, 1, None)
     counts, starts, t_rel, sgn = pixel_lists(kept, t0)
     offs = np.asarray(rig.column_offsets(w), np.float64)
+    table = pipe.channel_table(rig)
     prob = _fused.FusedProblem(
-        rig, pipe.channel_table(rig), ProblemConfig(), pipe.solver_spec("auto"), w,
-        offs, 1, noise,
+        rig, table, ProblemConfig(), pipe.solver_spec("auto"), w, offs, 1, noise,
     )  # fmt: skip
     args = (
         starts, counts, t_rel, sgn, np.zeros(h * w),
@@ -43,8 +44,9 @@ def fused_inputs(sensor: str, size: str) -> SimpleNamespace:
         np.asarray(info.threshold_off, np.float64).ravel(),
     )  # fmt: skip
     return SimpleNamespace(
-        prob=prob, sel=np.flatnonzero(counts), args=args, size=(h, w)
-    )
+        prob=prob, sel=np.flatnonzero(counts), args=args, size=(h, w),
+        table=np.asarray(table.values, np.float64),
+    )  # fmt: skip
 
 
 def run_lane_solves(mod, setup: SimpleNamespace, sel: np.ndarray, on_solve):

@@ -13,10 +13,11 @@ the events screened and listed per pixel once (today's tree). Each kernel
 tree) solves all pixels on `--threads` threads: one warm-up call (numba compiles),
 then `--repeats` rounds, each kernel once per round. The earlier kernel must take
 the same arguments as today's `solve_pixels` (true since the kernel's `par`/`ipar`
-layout of 2026-11). Each kernel gets the band spans its own tree computed: from its
-`TRIM` (each band's entries above that fraction of the band's peak, since the
-eighteenth session) or, for a kernel without one, the rule before it (above 1e-10 of
-the whole table's peak).
+layout of 2026-11). Each kernel gets the band table and spans its own tree computed
+from the rig's table: trimmed at its `TRIM` (each band's entries above that fraction
+of the band's peak, since the eighteenth session) or, for a kernel without one, the
+table as it was with the spans of the rule before (above 1e-10 of the whole table's
+peak).
 
 Printed and written: µs per pixel (minimum and median of the rounds), the ratio of
 the two kernels' times in each round and its median (each round runs both back to
@@ -43,6 +44,7 @@ import numpy as np
 from _common import matmul_gflops, source_at
 from _kernel_setup import fused_inputs
 
+from evhsi_jax._model import trim_rows
 from evhsi_jax._reconstruct import _fused
 
 KERNEL = "evhsi_jax/_reconstruct/_fused_jit.py"
@@ -60,24 +62,22 @@ def load_kernel(source: str, name: str, folder: Path):
     return mod
 
 
-def with_spans(prob, mod):
-    """`prob` (a `FusedProblem`) with the band spans of kernel module `mod`'s tree (see
+def with_spans(prob, table, mod):
+    """`prob` (a `FusedProblem`) with the band table, its sums and spans as kernel
+    module `mod`'s tree made them from the rig's channel table `table` (float64; see
     the module docstring); a shallow copy."""
     import copy
 
-    tab = prob.table
-    m = tab.shape[1]
     trim = getattr(mod, "TRIM", None)
     if trim is None:  # the rule before the eighteenth session
+        tab = table
         big = np.abs(tab) > 1e-10 * np.abs(tab).max()
     else:
-        big = np.abs(tab) > trim * np.abs(tab).max(axis=1, keepdims=True)
-    any_ = big.any(axis=1)
+        tab = trim_rows(table, trim)
+        big = tab != 0.0
     out = copy.copy(prob)
-    out.span_lo = np.where(any_, np.argmax(big, axis=1), m).astype(np.int64)
-    out.span_hi = np.where(any_, m - np.argmax(big[:, ::-1], axis=1), 0).astype(
-        np.int64
-    )
+    out.table, out.tabsum = np.ascontiguousarray(tab), tab.sum(axis=1)
+    out.span_lo, out.span_hi = _fused.row_spans(big)
     return out
 
 
@@ -113,7 +113,7 @@ def main():
             "new": load_kernel(new_src, "kernel_new", Path(tmp)),
         }
 
-        probs = {id(m): with_spans(prob, m) for m in kernels.values()}
+        probs = {id(m): with_spans(prob, setup.table, m) for m in kernels.values()}
 
         def solve(mod):
             _fused_jit = sys.modules.get("evhsi_jax._reconstruct._fused_jit")
