@@ -25,6 +25,7 @@ from .._model import (
     EventStream,
     Rig,
     Scene,
+    band_overlap,
     band_table,
     lookup,
     photoreceptor_lowpass,
@@ -424,10 +425,10 @@ def _lowpassed_values(rig: Rig, traces: BandTable, cutoff_hz):
 MIN_SPECTRA = 32
 
 
-def _log_steps(rig: Rig, data: ChartData, block_events: int = 1 << 20):
+def _log_steps(rig: Rig, data: ChartData, block_events: int = 1 << 20, overlap=None):
     """Model log steps of every chart event in blocks of pixels, `(n, k)` (host):
     :func:`_log_steps_begin` then :func:`_log_steps_end`."""
-    return _log_steps_end(_log_steps_begin(rig, data, block_events))
+    return _log_steps_end(_log_steps_begin(rig, data, block_events, overlap))
 
 
 def _log_steps_end(pending) -> np.ndarray:
@@ -435,7 +436,9 @@ def _log_steps_end(pending) -> np.ndarray:
     return np.concatenate([np.asarray(a, np.float64)[:rows] for a, rows in pending])
 
 
-def _log_steps_begin(rig: Rig, data: ChartData, block_events: int = 1 << 20):
+def _log_steps_begin(
+    rig: Rig, data: ChartData, block_events: int = 1 << 20, overlap=None
+):
     """Start the model log steps of every chart event in blocks of pixels: the
     blocks' device results with their valid rows, for :func:`_log_steps_end` (JAX
     computes them while the caller's Python goes on).
@@ -444,14 +447,16 @@ def _log_steps_begin(rig: Rig, data: ChartData, block_events: int = 1 << 20):
     pixels (masked), so one compilation serves all; a smaller set of pixels is padded
     to a power of two of them, and the spectra to `MIN_SPECTRA` or a power of two,
     so the compiled shapes stay few across calls (the fit's and the maps' passes
-    share them).
+    share them). `overlap`: the rig's :func:`band_overlap`, when the caller has it
+    (a pass over many charts or bands of rows with one rig: for a sampled band
+    profile it is a ~0.1 s table, and the maps' passes had made it ~20 times).
     """
     n_spec = data.spectra.shape[0]
     pad_spec = max(MIN_SPECTRA, 1 << max(n_spec - 1, 1).bit_length()) - n_spec
     data = dataclasses.replace(
         data, spectra=np.pad(data.spectra, ((0, pad_spec), (0, 0)))
     )
-    traces = spectral_traces(rig, data.spectra)
+    traces = spectral_traces(rig, data.spectra, overlap)
     rig = without_band_profile(rig)  # (the band is in the traces)
     filtered = None
     hz = rig.effects.photoreceptor_hz
@@ -485,7 +490,8 @@ def _log_steps_begin(rig: Rig, data: ChartData, block_events: int = 1 << 20):
                     for k in ("t_us", "polarity", "mask", "column", "pixel", "spectrum")
                 },
             )
-        args = (rig, _device(part, dtype), traces, filtered)
+        # (host arrays: the program's inputs as they are, no eager conversions)
+        args = (rig, _host_lists(part, dtype), traces, filtered)
         out.append((call_exported("chart_log_steps", _log_steps_jit, args), block - pad))
     return out
 
@@ -586,6 +592,7 @@ def threshold_maps_from_chart(
     off = np.full(h * w, float(rig.threshold_off))
     seen_charts = [chart.blurred(float(v)) for v in psf_sigmas_px]
     bands = _row_bands(events, MAP_BLOCK_EVENTS)
+    overlap = band_overlap(rig)  # (one rig for every pass)
 
     last: list = []  # the latest band's lists: pass 2 starts with pass 1's last band
 
@@ -627,11 +634,11 @@ def threshold_maps_from_chart(
                 continue
             views = [_seen_through(d, seen, rig) for seen in seen_charts]
             first = sweep_first_events(d, period)  # (the views share d's times)
-            nxt = _log_steps_begin(rig, views[0])
+            nxt = _log_steps_begin(rig, views[0], overlap=overlap)
             for i, view in enumerate(views):
                 pending = nxt
                 if i + 1 < len(views):
-                    nxt = _log_steps_begin(rig, views[i + 1])
+                    nxt = _log_steps_begin(rig, views[i + 1], overlap=overlap)
                 steps = _log_steps_end(pending)
                 view = judged(view, first)
                 c_on, c_off = _closed_form_thresholds(steps, view)
@@ -646,10 +653,12 @@ def threshold_maps_from_chart(
         if d is None:
             continue
         d = _seen_through(d, seen_charts[best], rig)
-        steps = _log_steps(rig, d)
+        steps = _log_steps(rig, d, overlap=overlap)
         first = sweep_first_events(d, period)
         on0, off0 = _closed_form_thresholds(steps, judged(d, first))
-        d, steps = _without_stray_events(rig, d, steps, on0, off0, skip=first)
+        d, steps = _without_stray_events(
+            rig, d, steps, on0, off0, skip=first, overlap=overlap
+        )
         on_b, off_b, kept = _sweep_robust_thresholds(steps, judged(d), period)
         rms_b = _robust_spread(steps, dataclasses.replace(d, mask=kept), on_b, off_b)
         pix.append(d.pixel), c_on.append(on_b), c_off.append(off_b)
@@ -682,7 +691,9 @@ def _row_bands(events: EventStream, budget: int) -> list[tuple[int, int]]:
     return bands
 
 
-def _without_stray_events(rig: Rig, d: ChartData, steps, c_on, c_off, skip=None):
+def _without_stray_events(
+    rig: Rig, d: ChartData, steps, c_on, c_off, skip=None, overlap=None
+):
     """The event lists with each pixel's stray events removed — an event whose residual
     with the pixel's own thresholds `c_on`, `c_off` is beyond max(0.5, 6 robust σ)
     thresholds: a background event inside the lit interval, or a crossing the model
@@ -693,7 +704,7 @@ def _without_stray_events(rig: Rig, d: ChartData, steps, c_on, c_off, skip=None)
 
     `skip` (`(n, k)` bool, optional): events that are neither judged nor removed
     (each sweep's first: its reference lies across the dark part,
-    :func:`sweep_first_events`).
+    :func:`sweep_first_events`). `overlap`: as :func:`_log_steps_begin`'s.
 
     **Returns:** `(d, steps)`, those pixels' lists compacted and their steps
     recomputed."""
@@ -720,7 +731,7 @@ def _without_stray_events(rig: Rig, d: ChartData, steps, c_on, c_off, skip=None)
     for k in full:
         full[k][rows] = getattr(sub, k)
     steps = steps.copy()
-    steps[rows] = _log_steps(rig, sub)
+    steps[rows] = _log_steps(rig, sub, overlap=overlap)
     return dataclasses.replace(d, **full), steps
 
 

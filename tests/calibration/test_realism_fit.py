@@ -154,6 +154,23 @@ def test_blurred_scene_matches_a_direct_filter():
     assert scene.blurred(0.0) is scene
 
 
+def test_unique_rows_equals_numpys():
+    """`Scene.blurred`'s grouping of its weight rows (a random projection, checked)
+    gives `np.unique(axis=0)`'s rows, order and inverse, also where rows differ in
+    one entry by the rounding's last digit."""
+    from evhsi_jax._model._scenes import _unique_rows
+
+    rng = np.random.default_rng(3)
+    rows = np.round(rng.random((40, 6)), 12)
+    rows[7] = rows[3]
+    rows[8] = rows[3] + np.r_[1e-12, 0, 0, 0, 0, 0]
+    a = rows[rng.integers(0, 40, 5000)]
+    uniq, inv = _unique_rows(a)
+    ref, ref_inv = np.unique(a, axis=0, return_inverse=True)
+    np.testing.assert_array_equal(uniq, ref)
+    np.testing.assert_array_equal(inv, ref_inv.reshape(-1))
+
+
 def test_a_background_event_does_not_cost_a_pixel_its_thresholds(monkeypatch):
     """With background activity many chart pixels catch a noise event inside the lit
     interval over a few sweeps. The event is dropped from the pixel's list (or, below
