@@ -565,9 +565,6 @@ def _events_system(u, args):
     )
 
 
-_data_system = eqx.filter_jit(_events_system)
-
-
 def _fit_system(u, args):
     """The fit's full normal equations (events and τx prior) at scaled parameters
     `u`: `(JᵀJ, Jᵀr, rᵀr)` in the flattened variables."""
@@ -952,20 +949,47 @@ def _screened_chart_data(
     return data, events, hot
 
 
-def _jacobi_scale(p0: dict, keep, fit: _FitData):
-    """Each parameter's Jacobian column norm at `p0` (floored), from the diagonal of
-    the event residuals' normal equations: the change of variables of
-    :func:`_fit_chart_float64`; and the residuals' sum of squares there (one
-    threshold pair)."""
-    ones = jax.tree.map(jnp.ones_like, p0)
-    hgg, _, htt, _, _, ss = _data_system(p0, (ones, (False, keep, fit)))
-    _, unravel = jax.flatten_util.ravel_pytree(p0)
-    norms = unravel(jnp.sqrt(jnp.maximum(jnp.concatenate([jnp.diag(hgg), htt]), 0.0)))
+#: The step of :func:`_jacobi_scale`'s differences, in the fit's parameters (log
+#: thresholds, τx in `TAU_SCALE_US`, ...: all of order one at the start).
+JACOBI_STEP = 1e-6
+
+
+def _jacobi_scale(p0: dict, residuals, slot_column, width: int):
+    """Each parameter's Jacobian column norm at `p0` (floored): the change of variables
+    of :func:`_fit_chart_float64`; and the residuals' sum of squares there.
+
+    By forward differences of the event residuals (`residuals(params)`: one
+    threshold pair, every slot, `(slots, k)`; `slot_column`: each slot's sensor
+    column) — one evaluation per global parameter and one with every τx moved at
+    once, each residual depending on its own column's τx only. The norms equal the
+    forward-mode derivatives' within ~1e-6 relative (48x1280 benchmark chart,
+    2026-11-29), all a preconditioner needs; the residuals' program is one the fit
+    runs anyway, where a program of its own for the derivatives had been ~3.5-5 s of
+    compilation per fit on a first run (twice with the band's strip)."""
+    base = residuals(p0)
+    h = JACOBI_STEP
+    norms = {}
+    for name, v in p0.items():
+        if name == "tau":
+            d = (residuals({**p0, "tau": v + h}) - base) / h
+            per_slot = np.einsum("ij,ij->i", d, d)
+            norms[name] = np.sqrt(np.bincount(slot_column, per_slot, minlength=width))
+            continue
+        flat = np.asarray(v, np.float64).reshape(-1)
+        col = np.zeros(flat.size)
+        for i in range(flat.size):
+            moved = flat.copy()
+            moved[i] += h
+            shifted = jnp.asarray(moved.reshape(np.shape(v)), v.dtype)
+            d = (residuals({**p0, name: shifted}) - base) / h
+            col[i] = np.sqrt(np.einsum("ij,ij->", d, d))
+        norms[name] = col.reshape(np.shape(v))
     scale = {
-        k: jnp.maximum(v, 1e-6 * jnp.max(v) + 1e-30) if v.size else v
+        k: jnp.asarray(np.maximum(v, 1e-6 * np.max(v) + 1e-30) if v.size else v,
+                       p0[k].dtype)  # fmt: skip
         for k, v in norms.items()
     }
-    return scale, ss
+    return scale, float(np.einsum("ij,ij->", base, base))
 
 
 #: A Levenberg–Marquardt step whose loss equals the current one to this share of it
@@ -1195,11 +1219,13 @@ def _fit_chart_float64(
 
     fit = fit_data(band, jnp.ones((), dtype))
 
-    def residuals(params, profile, keep):  # (n_px, k), the sorted chart pixels
+    def slot_residuals(params, profile, keep):  # (slots, k), the buckets' order
         # (`profile` as an array: one program for both kinds of residual)
         args = (params, jnp.asarray(profile), keep, fit)
-        r = call_exported("calibrate_residuals", _fit_residuals, args)
-        return np.asarray(r)[slots]
+        return np.asarray(call_exported("calibrate_residuals", _fit_residuals, args))
+
+    def residuals(params, profile, keep):  # (n_px, k), the sorted chart pixels
+        return slot_residuals(params, profile, keep)[slots]
 
     def rms_of(sum_sq, keep):  # over the events of the kept pixels
         n = int((data.mask & (np.asarray(keep)[slots] > 0)[:, None]).sum())
@@ -1209,20 +1235,25 @@ def _fit_chart_float64(
         return float(np.sum(np.square(res, dtype=np.float64)))
 
     if not verbose:
-        # The solver's and the residuals' programs compile in the background while
-        # the scale's compiles and runs (each compilation keeps one core busy; a first
-        # run spent ~20 s of a 48x1280 chart's calibration compiling these, twice
-        # with the band's strip). Only their shapes matter: p0 stands for u and s.
-        tol0 = jnp.asarray(LM_TOL[0], dtype)
-        prepare_exported("calibrate_lm", _lm_stage, lm_args(p0, p0, fit, False, tol0))
+        # The residuals' and the solver's programs compile in a background thread
+        # while this one goes on (a first run spent ~20 s of a 48x1280 chart's
+        # calibration compiling these, twice with the band's strip; XLA's compiler
+        # keeps ~1.7 of 2 cores busy by itself, so what overlaps is mostly this
+        # thread's Python). Only their shapes matter: p0 stands for u and s.
         prepare_exported(
             "calibrate_residuals", _fit_residuals, (p0, jnp.asarray(False), keep, fit)
         )
+        tol0 = jnp.asarray(LM_TOL[0], dtype)
+        prepare_exported("calibrate_lm", _lm_stage, lm_args(p0, p0, fit, False, tol0))
     # Jacobi scaling by change of variables (u = θ·s, s = column norms of the Jacobian at
     # the start): the Gauss–Newton matrix then has a unit diagonal and is "identity plus
     # the rank-4 coupling of the global parameters", so the matrix-free CG inside each
     # Levenberg–Marquardt step converges in a few iterations.
-    scale, ss0 = call_exported("calibrate_scale", _jacobi_scale, (p0, keep, fit))
+    slot_column = np.zeros(_slots_total(buckets), np.int64)
+    slot_column[slots] = data.column
+    scale, ss0 = _jacobi_scale(
+        p0, lambda p: slot_residuals(p, False, keep), slot_column, w
+    )
     r0 = rms_of(float(ss0), keep)
     # Stage 1: one threshold pair for all pixels. Stage 2 (per_pixel): the same fit with
     # every pixel's thresholds profiled out, so per-pixel mismatch cannot bias β, c, τx;

@@ -305,8 +305,7 @@ def test_a_second_process_fits_from_stored_programs(capture, fitted, monkeypatch
     def untraced(*a, **k):
         raise AssertionError("traced although its program is stored")
 
-    for mod, name in [(_fit, "_lm_stage"), (_fit, "_jacobi_scale"),
-                      (_fit, "_fit_residuals"),
+    for mod, name in [(_fit, "_lm_stage"), (_fit, "_fit_residuals"),
                       (_chart, "_log_steps_jit")]:  # fmt: skip
         monkeypatch.setattr(mod, name, untraced)
     again = ev.calibrate(events, chart, ev.Rig(), rows_per_label=None)
