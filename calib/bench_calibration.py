@@ -6,8 +6,10 @@ it to a temporary folder; then runs `evhsi calibrate` on it from the paper rig (
 per-pixel threshold maps) in its own process, as a user does, `--repeats` times with
 one compilation cache folder (the first run fills it: that run includes compilation;
 the others start warm). Reports each run's wall time and peak resident memory (the
-calibrating process alone, not the simulation), the Levenberg–Marquardt steps and the
-parameter errors against the truth, with the same machine's float32 matmul GFLOP/s.
+calibrating process alone, not the simulation) and its CPU seconds (user + system;
+less sensitive than the wall time to what else the machine runs), the
+Levenberg–Marquardt steps and the parameter errors against the truth, with the same
+machine's float32 matmul GFLOP/s.
 Writes `calib/out/bench_calibration_<H>x<W>.json`.
 
 `--sensor realistic`: the capture from a sensor with the `realistic` preset's effects
@@ -58,7 +60,9 @@ def run_cli(events_path: Path, out: Path, cache: Path, rows: int, init=None) -> 
         if os.waitstatus_to_exitcode(status) != 0:
             err.seek(0)
             raise SystemExit(f"evhsi calibrate failed: {err.read().strip()[-400:]}")
-    return {"seconds": wall, "peak_rss_mb": usage.ru_maxrss / 1024}
+    # CPU seconds too: on a shared machine they vary less than the wall time
+    cpu = usage.ru_utime + usage.ru_stime
+    return {"seconds": wall, "cpu_s": cpu, "peak_rss_mb": usage.ru_maxrss / 1024}
 
 
 def main():

@@ -139,12 +139,14 @@ def prepare_exported(name: str, fn, args: tuple, *, static: tuple = ()) -> None:
     runs the compiled program. `args` only need the call's structure, shapes and
     dtypes (and its non-array leaves).
 
-    XLA compiles one program on one core: a fit that needs several programs (the
-    calibration's scale, solver and residuals) compiles the next one while the
-    current one compiles and runs. Only with the cache on (the traced program is
-    kept on disk, so a second process loads both) and on one device; the thread sees
-    this thread's float64 setting. Any failure is left for `call_exported`, which
-    then compiles as usual.
+    A fit that needs several programs (the calibration's residuals and solver)
+    compiles the next one while this thread traces, prepares data and runs the
+    current one. (XLA's CPU compiler already keeps ~1.7 of 2 cores busy with one
+    program — measured 2026-11-29 — so two compilations at once gain little; the
+    overlap with this thread's Python is what this buys.) Only with the cache on
+    (the traced program is kept on disk, so a second process loads both) and on one
+    device; the thread sees this thread's float64 setting. Any failure is left for
+    `call_exported`, which then compiles as usual.
     """
     folder = _exported_folder()
     if folder is None:
