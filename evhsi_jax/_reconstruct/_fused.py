@@ -32,7 +32,7 @@ answer (Gauss–Newton passes, ≤ 4 sweeps; its filter runs as $F = S V$ with a
 scale so a time step costs the band's span) and the robust reweighting. Other
 solvers, the cubic lookup, gradients and accelerators stay on the JAX path
 (:func:`fused_supported`). Threads: pixels are handed out in blocks to `threads`
-workers; the kernel releases the GIL. With the photoreceptor rows the pixels go
+workers (:func:`block_pixels`); the kernel releases the GIL. With the photoreceptor rows the pixels go
 column by column (the answers come back in the caller's order): the band on a
 column's time grid is then formed once per column, not per pixel (1.25× the
 realistic kernel, `experiments/bench_kernel_ab.py --sensor realistic`).
@@ -56,8 +56,25 @@ from ._problem import (
 
 __all__ = ["fused_supported", "FusedProblem", "solve_fused"]
 
-#: Pixels handed to a worker at a time (load balance against per-call overhead).
-BLOCK_PIXELS = 512
+#: The most pixels handed to a worker at a time. A block costs ~70 µs of one core
+#: beyond its pixels' work (blocks of 128 against 4096 ideal pixels on one thread;
+#: numba's dispatch of ~20 arrays, the kernel's ~1 MB of zeroed work space, the
+#: answers' copy into the cube — not timed one by one): blocks of 512 (~6 ms of
+#: ideal pixels) made a 360×1280 ideal sweep ~4 % slower than blocks of 1024–4096
+#: (Performance log, "Twentieth session").
+BLOCK_PIXELS = 2048
+#: The fewest, unless there are fewer pixels: small images still split into
+#: `BLOCKS_PER_THREAD` blocks per worker, so the workers finish together.
+MIN_BLOCK_PIXELS = 256
+BLOCKS_PER_THREAD = 16
+
+
+def block_pixels(n: int, threads: int) -> int:
+    """Pixels per block for `n` pixels on `threads` workers: ~`BLOCKS_PER_THREAD`
+    blocks per worker, within [`MIN_BLOCK_PIXELS`, `BLOCK_PIXELS`] (the upper bound
+    wins)."""
+    per = -(-n // (BLOCKS_PER_THREAD * max(1, threads)))
+    return int(max(1, min(BLOCK_PIXELS, max(MIN_BLOCK_PIXELS, per))))
 
 
 def row_spans(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -235,13 +252,16 @@ def solve_fused(
         x = kkt = None
         scratch = threading.local()  # each worker's block of answers, reused
 
+    threads = shard.usable_cores() if threads is None else max(1, int(threads))
+    block = block_pixels(n, threads)
+
     def run(lo):
-        hi = min(lo + BLOCK_PIXELS, n)
+        hi = min(lo + block, n)
         if out is None:
             jit.solve_pixels(sel[lo:hi], *args, x[lo:hi], kkt[lo:hi], steps[lo:hi])
             return hi - lo
         if getattr(scratch, "x", None) is None:
-            scratch.x, scratch.kkt = np.empty((BLOCK_PIXELS, m)), np.empty(BLOCK_PIXELS)
+            scratch.x, scratch.kkt = np.empty((block, m)), np.empty(block)
         xb, kb = scratch.x[: hi - lo], scratch.kkt[: hi - lo]
         jit.solve_pixels(sel[lo:hi], *args, xb, kb, steps[lo:hi])
         rows = sel[lo:hi]
@@ -251,9 +271,8 @@ def solve_fused(
         out[1][rows] = kb
         return hi - lo
 
-    blocks = range(0, n, BLOCK_PIXELS)
-    threads = shard.usable_cores() if threads is None else max(1, int(threads))
-    if threads == 1 or n <= BLOCK_PIXELS:
+    blocks = range(0, n, block)
+    if threads == 1 or n <= block:
         for lo in blocks:
             done = run(lo)
             if progress is not None:

@@ -554,3 +554,19 @@ def test_one_compiled_kernel_for_float32_and_float64_rigs(captures):
     assert len(_fused_jit.solve_pixels.signatures) == 1
     assert len(_fused_jit._box_qp.signatures) <= 1  # (not compiled on a cache hit)
     assert ev.metrics.sam_map_deg(a, b).max() < 0.1  # (tables rounded differently)
+
+
+def test_block_pixels_splits_work_evenly_within_bounds():
+    """Blocks for the workers: a whole sweep in the largest blocks, a small image
+    still in ~16 blocks per worker (never below the floor unless it has fewer
+    pixels), and every pixel covered."""
+    big = _fused.block_pixels(1280 * 720, 2)
+    assert big == _fused.BLOCK_PIXELS
+    small = _fused.block_pixels(96 * 144, 2)
+    assert _fused.MIN_BLOCK_PIXELS <= small < _fused.BLOCK_PIXELS
+    assert -(-96 * 144 // small) >= 2 * _fused.BLOCKS_PER_THREAD - 1
+    assert _fused.block_pixels(10, 2) == _fused.MIN_BLOCK_PIXELS  # one block
+    assert _fused.block_pixels(0, 1) >= 1
+    for n, t in [(1, 1), (5000, 3), (10**6, 16)]:
+        b = _fused.block_pixels(n, t)
+        assert 1 <= b <= _fused.BLOCK_PIXELS and -(-n // b) * b >= n
