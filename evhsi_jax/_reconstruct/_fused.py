@@ -33,9 +33,9 @@ scale so a time step costs the band's span) and the robust reweighting. Other
 solvers, the cubic lookup, gradients and accelerators stay on the JAX path
 (:func:`fused_supported`). Threads: pixels are handed out in blocks to `threads`
 workers (:func:`block_pixels`); the kernel releases the GIL. With the photoreceptor
-rows the pixels go column by column (the answers come back in the caller's order): the band on a
-column's time grid is then formed once per column, not per pixel (1.25× the
-realistic kernel, `experiments/bench_kernel_ab.py --sensor realistic`).
+rows the pixels go column by column (the answers come back in the caller's order):
+the band on a column's time grid is then formed once per column, not per pixel
+(1.25× the realistic kernel, `experiments/bench_kernel_ab.py --sensor realistic`).
 """
 
 from __future__ import annotations
