@@ -59,10 +59,10 @@ __all__ = ["fused_supported", "FusedProblem", "solve_fused"]
 #: The most pixels handed to a worker at a time. A block costs ~70 µs of one core
 #: beyond its pixels' work (blocks of 128 against 4096 ideal pixels on one thread;
 #: numba's dispatch of ~20 arrays, the kernel's ~1 MB of zeroed work space, the
-#: answers' copy into the cube — not timed one by one). Against blocks of 512 (~6 ms
-#: of ideal pixels), whole ideal sweeps took 1.00–1.035× as long per round, within
-#: the machine's spread (`experiments/bench_blocks.py`; Performance log, "Twentieth
-#: session"); the answers are the same to the bit.
+#: answers' copy into the cube — not timed one by one). Blocks of 512 (~6 ms of
+#: ideal pixels) made whole ideal sweeps 1.00–1.035× as long as these (medians of the
+#: per-round ratios), within the machine's spread (`experiments/bench_blocks.py`;
+#: Performance log, "Twentieth session"); the answers are the same to the bit.
 BLOCK_PIXELS = 2048
 #: The fewest, unless there are fewer pixels: small images still split into
 #: `BLOCKS_PER_THREAD` blocks per worker, so the workers finish together.
