@@ -28,8 +28,9 @@ Scope: the whole per-pixel problem `reconstruct` solves with the active-set solv
 and the linear table lookup — the ideal sensor's, and with a calibrated noise model
 the noise-aware one: event times moved back by the photoreceptor's lag, rows weighted
 by their noise, the dark-channel prior, the photoreceptor model relinearised at the
-answer (Gauss–Newton passes, ≤ 4 sweeps; its filter runs as $F = S V$ with a running
-scale so a time step costs the band's span) and the robust reweighting. Other
+answer (Gauss–Newton passes, any number of sweeps; its filter runs as $F = S V$
+with a running scale so a time step costs the band's span) and the robust
+reweighting. Other
 solvers, the cubic lookup, gradients and accelerators stay on the JAX path
 (:func:`fused_supported`). Threads: pixels are handed out in blocks to `threads`
 workers (:func:`block_pixels`); the kernel releases the GIL. With the photoreceptor
@@ -162,7 +163,7 @@ class FusedProblem:
         # then forms each column's time grid once for the column's pixels, so the
         # pixels go to it column by column (solve_fused).
         self.lowpass = bool(
-            noise is not None and nz[2] > 0 and sweeps <= 4 and cfg.lowpass_passes > 0
+            noise is not None and nz[2] > 0 and cfg.lowpass_passes > 0
         )
         self.ipar = np.array(
             [sweeps, cfg.int_points, INT_TARGETS.index(cfg.int_target),

@@ -1750,7 +1750,7 @@ def solve_pixels(
     gr = np.zeros(m)
     lohi = np.zeros(2, np.int64)
     d_w = par[P_DW]
-    lowpass = noisy_model and d_w > 0.0 and sweeps <= 4 and ipar[I_LOWPASS] > 0
+    lowpass = noisy_model and d_w > 0.0 and ipar[I_LOWPASS] > 0
     lp_passes = ipar[I_LOWPASS] if lowpass else 0
     n_query = 2 * kmax if lowpass else 1  # per pixel: each event's time, its reference
     n_grid = sweeps * ipar[I_SAMPLES] + 1 if lowpass else 1

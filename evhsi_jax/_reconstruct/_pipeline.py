@@ -284,7 +284,7 @@ def _solve_chunk(
         q_mat, q_vec, _ = jax.vmap(lambda r: system_from_rows(cfg, r))(rows)
         x, kkt = solve_qp(q_mat, q_vec)
         more = jnp.ones(x.shape[0], bool)  # the pixels that take the next pass
-        for _ in range(cfg.lowpass_passes if sweeps <= 4 else 0):
+        for _ in range(cfg.lowpass_passes):
             # A photoreceptor low-pass: relinearise its model at the current answer
             # (a pixel whose last pass moved it by ≤ lowpass_tol keeps its answer).
             def relinearise(rows=rows, x=x, kkt=kkt, more=more):
@@ -410,7 +410,7 @@ def _solve_chunk_cuda(rig, table, cfg, spec, sub, px, sweeps, noise=None, first=
     x, kkt = solve(rows, n)
     if noise is None:
         return x, kkt
-    if sweeps <= 4 and float(noise[2]) > 0:
+    if float(noise[2]) > 0:
         more = jnp.ones(x.shape[0], bool)  # the pixels that take the next pass
         for p in range(cfg.lowpass_passes):
             # After the first pass only the pixels it moved take another: to both
