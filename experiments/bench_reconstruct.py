@@ -2,7 +2,7 @@
 
 Setup: paper rig, ideal sensor (`--sensor realistic`: the `realistic` preset, whose
 noise model — threshold noise, jitter, 10 kHz photoreceptor — the reconstruction then
-uses, as after calibrating a real rig), one sweep of the ColorChecker (default
+uses, as after calibrating a real rig), one sweep (`--sweeps N`: N) of the ColorChecker (default
 96×144), reconstructed with the sensor's per-pixel thresholds (as after calibration). Per
 backend one warm-up call (compiles), then `--repeats` timed calls, all in one process;
 prints and stores the median pixels/s, the individual times, the process's CPU time
@@ -20,7 +20,7 @@ thousand px/s) and report, per backend, the share of pixels within 0.1° SAM of 
 the issue's "equal accuracy" test.
 
 Run: `.venv/bin/python experiments/bench_reconstruct.py [--size 96x144] [--repeats 5]
-[--workers 2] [--sensor ideal|realistic] [--reference]
+[--workers 2] [--sensor ideal|realistic] [--sweeps 1] [--reference]
 [--out experiments/results/bench_reconstruct.json]`.
 """
 
@@ -44,6 +44,9 @@ def main():
     )
     ap.add_argument("--reference", action="store_true")
     ap.add_argument("--sensor", default="ideal", choices=["ideal", "realistic"])
+    ap.add_argument(
+        "--sweeps", type=int, default=1, help="sweeps of the static recording (1)"
+    )
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
     workers = args.workers or len(os.sched_getaffinity(0))
@@ -63,7 +66,9 @@ def main():
     rig = ev.Rig(sensor=args.sensor)
     scene = ev.load_scene("colorchecker", (h, w))
     t0 = time.perf_counter()
-    events, info = ev.simulate(scene, rig, sweeps=1, key=jr.key(0), return_info=True)
+    events, info = ev.simulate(
+        scene, rig, sweeps=args.sweeps, key=jr.key(0), return_info=True
+    )
     print(f"simulated {len(events):,} events in {time.perf_counter() - t0:.1f} s")
     truth = scene.truth_cube(rig.grid)
     maps = dict(
@@ -78,6 +83,7 @@ def main():
     results = {
         "size": [h, w],
         "sensor": args.sensor,
+        "sweeps": args.sweeps,
         "events": len(events),
         "workers": workers,
         "backends": {},
