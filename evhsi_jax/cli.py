@@ -947,10 +947,12 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         metavar="N",
         help="at most N Gauss-Newton passes of the photoreceptor model when the "
-        f"calibration has a photoreceptor cut-off (default {pc.lowpass_passes}; 0: "
-        "the delay shift alone); a pixel stops once a pass changed its spectrum by "
-        f"<= {pc.lowpass_tol * 100:g}%%, so a fast photoreceptor costs about one pass and a "
-        "slow one takes more (README, Real sensors)",
+        "calibration has a photoreceptor cut-off, or threshold noise or jitter without "
+        "one (then of an instantaneous photoreceptor: rows in log units) (default "
+        f"{pc.lowpass_passes}; 0: the first solve alone); a pixel stops once a pass "
+        f"changed its spectrum by <= {pc.lowpass_tol * 100:g}%%, so a fast "
+        "photoreceptor costs about one pass and a slow one takes more (README, Real "
+        "sensors)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_strict(p)

@@ -2,7 +2,8 @@
 
 Setup: paper rig, ideal sensor (`--sensor realistic`: the `realistic` preset, whose
 noise model — threshold noise, jitter, 10 kHz photoreceptor — the reconstruction then
-uses, as after calibrating a real rig), one sweep (`--sweeps N`: N) of the ColorChecker (default
+uses, as after calibrating a real rig; `--sensor threshold-noise`: per-crossing
+threshold noise 0.01 alone), one sweep (`--sweeps N`: N) of the ColorChecker (default
 96×144), reconstructed with the sensor's per-pixel thresholds (as after calibration). Per
 backend one warm-up call (compiles), then `--repeats` timed calls, all in one process;
 prints and stores the median pixels/s, the individual times, the process's CPU time
@@ -20,7 +21,7 @@ thousand px/s) and report, per backend, the share of pixels within 0.1° SAM of 
 the issue's "equal accuracy" test.
 
 Run: `.venv/bin/python experiments/bench_reconstruct.py [--size 96x144] [--repeats 5]
-[--workers 2] [--sensor ideal|realistic] [--sweeps 1] [--reference]
+[--workers 2] [--sensor ideal|realistic|threshold-noise] [--sweeps 1] [--reference]
 [--out experiments/results/bench_reconstruct.json]`.
 """
 
@@ -43,7 +44,9 @@ def main():
         "--workers", type=int, default=None, help="threads / XLA devices (all cores)"
     )
     ap.add_argument("--reference", action="store_true")
-    ap.add_argument("--sensor", default="ideal", choices=["ideal", "realistic"])
+    ap.add_argument(
+        "--sensor", default="ideal", choices=["ideal", "realistic", "threshold-noise"]
+    )
     ap.add_argument(
         "--sweeps", type=int, default=1, help="sweeps of the static recording (1)"
     )
@@ -63,7 +66,11 @@ def main():
     import evhsi_jax as ev
 
     h, w = ev.forward.parse_size(args.size)
-    rig = ev.Rig(sensor=args.sensor)
+    rig = (
+        ev.Rig.from_dict({"threshold_noise": 0.01})
+        if args.sensor == "threshold-noise"
+        else ev.Rig(sensor=args.sensor)
+    )
     scene = ev.load_scene("colorchecker", (h, w))
     t0 = time.perf_counter()
     events, info = ev.simulate(

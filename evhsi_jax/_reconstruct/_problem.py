@@ -117,10 +117,12 @@ class ProblemConfig:
       first solve when a noise model is given; 0 turns the robust loss off.
     - `lowpass_passes`: at most this many Gauss–Newton passes of the linearised
       photoreceptor model (`x0` of :func:`pixel_system`) after the first,
-      delay-shifted solve, when the noise model has a low-pass, for any number of
-      sweeps (until 2026-11-29 only for recordings of ≤ 4: a longer static
-      recording kept the delay shift and came out ~3× worse than one of 4 sweeps,
-      README "Real sensors"); 0: the delay shift alone. The first pass always
+      delay-shifted solve, when the noise model has a low-pass (with material
+      threshold noise or jitter and none, `reconstruct` gives it an instantaneous
+      one, `_pipeline.LOG_MODEL_HZ`: log-unit rows), for any number of sweeps
+      (until 2026-11-29 only for recordings of ≤ 4: a longer static recording
+      kept the delay shift and came out ~3× worse than one of 4 sweeps, README
+      "Real sensors"); 0: the first solve alone. The first pass always
       runs; a pixel takes another only while its last pass moved it by more than
       `lowpass_tol` (`evhsi reconstruct --photoreceptor-passes`).
     - `lowpass_tol`: a pixel's Gauss–Newton passes stop once a pass changed its
