@@ -595,6 +595,10 @@ MATERIAL_BACKGROUND_HZ = 0.05
 #: the passes; README Limitations, "Threshold noise leaves a bias").
 LOG_MODEL_HZ = 1e6
 
+#: Sweeps up to which the JAX path's photoreceptor passes keep the full sub-batch;
+#: a longer recording's sub-batch shrinks in proportion (`reconstruct`).
+LOWPASS_SUB_SWEEPS = 4
+
 
 def solve_noise(noise: np.ndarray | None, cfg: ProblemConfig) -> np.ndarray | None:
     """The noise model the solve uses: :func:`noise_model`'s, with the instantaneous
@@ -767,6 +771,18 @@ def reconstruct(
     solve, n_dev = _solve_chunk_stored, 1
     if _use_cuda(backend, fused, spec, cfg, rig, mesh, h * w * sweeps):
         solve = _solve_chunk_cuda
+    noise_solve = solve_noise(noise, cfg)
+    if (
+        not fused
+        and solve is not _solve_chunk_cuda
+        and noise_solve is not None
+        and noise_solve[2] > 0
+        and sweeps > LOWPASS_SUB_SWEEPS
+    ):
+        # The JAX path forms each pixel's photoreceptor grid (sweeps × samples per
+        # sweep points × channels) for a whole sub-batch at once: keep that at the
+        # size of LOWPASS_SUB_SWEEPS sweeps (~1.9 GB peak on a CPU at 4 sweeps).
+        sub = max(1, sub * LOWPASS_SUB_SWEEPS // sweeps)
     if mesh is not None:
         solve, n_dev = functools.partial(solve_chunk_sharded, mesh), mesh.devices.size
         sub = shard.sub_batch_for(mesh, sub)
@@ -774,7 +790,7 @@ def reconstruct(
     keep, n_kept, hot, n_dropped = _screen_mask(
         events, rig, t_start_us, noise, sweeps, cal.hot_pixels
     )  # (screen_events; the kept events taken below where needed)
-    noise = solve_noise(noise, cfg)
+    noise = noise_solve
     # A bucket's last chunk is padded to sub × 2^j (small images and buckets pad
     # little); a bucket of fewer than a quarter chunk of pixels joins the next one
     # (one compiled shape less for a little padding).

@@ -490,6 +490,9 @@ def test_backend_choice_and_refusals(captures):
         # The realistic preset: also the photoreceptor's lag and its relinearised
         # model (Gauss–Newton pass), a skewed band, a curved sweep.
         (dict(sensor="realistic"), 2),
+        # More than 4 sweeps: the passes run too (since 2026-11-29), the JAX path's
+        # sub-batch shrunk to bound its photoreceptor grids (LOWPASS_SUB_SWEEPS).
+        (dict(sensor="realistic"), 6),
     ],
 )
 def test_noise_aware_fused_equals_float64_jax(keys, sweeps):
