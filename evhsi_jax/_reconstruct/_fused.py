@@ -143,7 +143,8 @@ class FusedProblem:
             f(rig.sweep_start_nm), f(rig.sweep_curvature_nm),
             0.5 * (rig.grid.start_nm + rig.grid.stop_nm),
             0.5 * (rig.grid.stop_nm - rig.grid.start_nm),
-            arrive, leave, rig.grid.width_nm / speed, cfg.alpha_int, cfg.alpha_spec,
+            arrive, leave, rig.grid.width_nm / speed, cfg.alpha_int / sweeps,
+            cfg.alpha_spec,
             cfg.ridge, cfg.peak_height, spec.tol, float(np.trace(s)),
             float(table.lo_nm), 1.0 / float(table.step_nm),
         ]  # fmt: skip

@@ -78,7 +78,12 @@ INT_TARGETS = ("linear", "peak", "flat", "flat-peak")
 class ProblemConfig:
     """Weights and choices of the per-pixel problem (static, hashable).
 
-    - `alpha_int`: weight of the anti-drift term. The paper's 1.0 refers to its
+    - `alpha_int`: weight of the anti-drift term over the whole recording: a
+      recording of S sweeps gives each sweep's anti-drift rows alpha_int / S (since
+      2026-11-29; before, each sweep had the whole weight, so this prior's pull grew
+      with the data and its bias stayed however many sweeps were recorded: README,
+      Real sensors, "The anti-drift prior over several sweeps";
+      `experiments/anti_drift_sweeps.py`). The paper's 1.0 refers to its
       un-normalised terms; with the normalisation here the events are exact constraints
       and the priors only fill their null space, so the weights are small. Defaults
       chosen on the training scenes `tcs` and a synthetic sharp set (never on the
@@ -436,7 +441,9 @@ def pixel_system(
         int_x = a_g - wa[:, None] * a_vec_a - sg[:, None] * a_vec_b
         int_c = -base * bump
         i_tgt = jnp.maximum(wa * i_a + sg * i_b, 1e-3 * base)
-    w_int = jnp.sqrt(cfg.alpha_int * spacing / tau0) * jnp.ones_like(sg)
+    # alpha_int is the prior's weight over the whole recording: each of its sweeps
+    # repeats the same assumption about the same spectrum, so each gets 1/sweeps.
+    w_int = jnp.sqrt(cfg.alpha_int / sweeps * spacing / tau0) * jnp.ones_like(sg)
     if norm:
         w_int = w_int / i_tgt
     int_rows = jnp.concatenate([int_x, int_c[:, None]], axis=1) * w_int[:, None]
