@@ -49,15 +49,15 @@ def main(argv=None):
     scene = ev.load_scene("colorchecker", (h, w))
     truth = np.asarray(scene.truth_cube(rig.grid), np.float64)
     centres = np.asarray(rig.grid.centres_nm)
+    cfg = ProblemConfig() if args.passes is None else ProblemConfig(
+        lowpass_passes=args.passes
+    )
     rows = []
     for sweeps in (int(v) for v in args.sweeps.split(",")):
         events, info = ev.simulate(
             scene, rig, sweeps=sweeps, key=jr.key(args.seed), return_info=True
         )
         cal = ev.Calibration(rig, info.threshold_on, info.threshold_off)
-        cfg = ProblemConfig() if args.passes is None else ProblemConfig(
-            lowpass_passes=args.passes
-        )
         cube = ev.reconstruct(events, cal, backend=args.backend, config=cfg)
         m = ev.evaluate(cube, truth)
         bias = (np.asarray(cube, np.float64) - truth).mean(axis=(0, 1))

@@ -30,9 +30,8 @@ the noise-aware one: event times moved back by the photoreceptor's lag, rows wei
 by their noise, the dark-channel prior, the photoreceptor model relinearised at the
 answer (Gauss–Newton passes, any number of sweeps; its filter runs as $F = S V$
 with a running scale so a time step costs the band's span) and the robust
-reweighting. Other
-solvers, the cubic lookup, gradients and accelerators stay on the JAX path
-(:func:`fused_supported`). Threads: pixels are handed out in blocks to `threads`
+reweighting. Other solvers, the cubic lookup, gradients and accelerators stay on the
+JAX path (:func:`fused_supported`). Threads: pixels are handed out in blocks to `threads`
 workers (:func:`block_pixels`); the kernel releases the GIL. With the photoreceptor
 rows the pixels go column by column (the answers come back in the caller's order):
 the band on a column's time grid is then formed once per column, not per pixel

@@ -609,7 +609,13 @@ def solve_noise(noise: np.ndarray | None, cfg: ProblemConfig) -> np.ndarray | No
         return noise
     if noise[0] < MATERIAL_THRESHOLD_NOISE and noise[1] < MATERIAL_JITTER_US:
         return noise
-    return np.array([noise[0], noise[1], 1e6 / (2 * np.pi * LOG_MODEL_HZ)])
+    return np.array([noise[0], noise[1], white_delay_us(LOG_MODEL_HZ)])
+
+
+def white_delay_us(cutoff_hz: float) -> float:
+    """$d_w = 1/(2π f_c)$ in µs: a photoreceptor's time constant at a white pixel's
+    peak intensity, from its cut-off (Hz)."""
+    return 1e6 / (2 * np.pi * cutoff_hz)
 
 
 def noise_model(rig: Rig) -> np.ndarray | None:
@@ -618,7 +624,7 @@ def noise_model(rig: Rig) -> np.ndarray | None:
     tell (σ_C < 0.002 log, σ_t < 1 µs, no photoreceptor low-pass and background
     activity below 0.05 Hz per pixel)."""
     fx = rig.effects.floats()
-    d_w = 1e6 / (2 * np.pi * fx.photoreceptor_hz) if fx.photoreceptor_hz > 0 else 0.0
+    d_w = white_delay_us(fx.photoreceptor_hz) if fx.photoreceptor_hz > 0 else 0.0
     material = (
         fx.threshold_noise >= MATERIAL_THRESHOLD_NOISE
         or fx.timestamp_jitter_us >= MATERIAL_JITTER_US
@@ -777,6 +783,7 @@ def reconstruct(
         and solve is not _solve_chunk_cuda
         and noise_solve is not None
         and noise_solve[2] > 0
+        and cfg.lowpass_passes > 0
         and sweeps > LOWPASS_SUB_SWEEPS
     ):
         # The JAX path forms each pixel's photoreceptor grid (sweeps × samples per
