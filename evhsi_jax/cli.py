@@ -287,6 +287,11 @@ def cmd_reconstruct(args):
         f"sweep(s)) with {args.solver} in {elapsed:.1f} s "
         f"({n / elapsed:,.0f} px/s) -> {out}"
         + (f"; preview -> {preview}" if preview else "")
+        + (
+            f"; {info.stray_events:,} stray event(s) inside lit intervals removed"
+            if info.stray_events
+            else ""
+        )
     )
     return 0
 
@@ -362,15 +367,23 @@ _DEBLUR = {"auto": None, "on": True, "off": False}
 def _problem_config(args):
     """The per-pixel problem's settings that `reconstruct` options change (None:
     the defaults)."""
-    if args.photoreceptor_passes is None:
+    stray_z = getattr(args, "stray_z", None)
+    if args.photoreceptor_passes is None and stray_z is None:
         return None
-    if not 0 <= args.photoreceptor_passes <= 16:
+    if args.photoreceptor_passes is not None and not 0 <= args.photoreceptor_passes <= 16:
         raise ValueError(
             f"--photoreceptor-passes must be in [0, 16], got {args.photoreceptor_passes}"
         )
+    if stray_z is not None and not (np.isfinite(stray_z) and stray_z >= 0):
+        raise ValueError(f"--stray-z must be a finite number >= 0, got {stray_z}")
     from ._reconstruct import ProblemConfig
 
-    return ProblemConfig(lowpass_passes=args.photoreceptor_passes)
+    kw = {}
+    if args.photoreceptor_passes is not None:
+        kw["lowpass_passes"] = args.photoreceptor_passes
+    if stray_z is not None:
+        kw["stray_z"] = stray_z
+    return ProblemConfig(**kw)
 
 
 def _run_sweeps(args, cal, out, roi, stop, config):
@@ -953,6 +966,17 @@ def build_parser() -> argparse.ArgumentParser:
         f"changed its spectrum by <= {pc.lowpass_tol * 100:g}%%, so a fast "
         "photoreceptor costs about one pass and a slow one takes more (README, Real "
         "sensors)",
+    )
+    p.add_argument(
+        "--stray-z",
+        type=float,
+        default=None,
+        metavar="Z",
+        help="when the calibration measured background activity, a pixel whose worst "
+        "event row is left more than Z standard deviations from its answer is solved "
+        "again without each event of that sweep in turn, and one that explains it is "
+        f"removed as a stray background event (default {pc.stray_z:g}; 0: never; "
+        "fused backend only; README, Real sensors)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_strict(p)

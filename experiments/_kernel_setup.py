@@ -68,7 +68,7 @@ def run_lane_solves(mod, setup: SimpleNamespace, sel: np.ndarray, on_solve):
         args = _fused.kernel_inputs(setup.prob, *setup.args)
         x, kkt = np.empty((sel.size, m)), np.empty(sel.size)
         steps = np.empty(sel.size, np.int64)
-        mod.solve_pixels.py_func(sel, *args, x, kkt, steps)
+        mod.solve_pixels.py_func(sel, *args, x, kkt, steps, np.empty((sel.size, 3)))
     finally:
         mod._solve_lanes, mod._solve_group, mod._lane_assemble = solve, group, assemble
     return x, kkt, steps

@@ -59,6 +59,15 @@ def load_kernel(source: str, name: str, folder: Path):
     spec = importlib.util.spec_from_file_location(name, path)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
+    if "out_fit" not in mod.solve_pixels.py_func.__code__.co_varnames:
+        # A kernel from before its per-pixel fit output (2026-11-29): called without it.
+        old = mod.solve_pixels
+
+        def without_fit(*a):
+            return old(*a[:-1])
+
+        without_fit.py_func = old.py_func
+        mod.solve_pixels = without_fit
     return mod
 
 

@@ -228,6 +228,7 @@ def solve_fused(
     threads: int | None = None,
     progress=None,
     out: tuple[np.ndarray, np.ndarray] | None = None,
+    fit: np.ndarray | None = None,
 ):
     """Solve pixels `sel` (flat indices) from their events in pixel order (CSR:
     `starts`, `use`). Returns `(x (n, M) float64, kkt (n,), steps (n,))`; a pixel whose
@@ -237,7 +238,11 @@ def solve_fused(
     float32 cube, `(pixels, M)`, and its KKT residuals) as each block of pixels is
     solved, by the worker that solved it; `x` and `kkt` are then returned as None.
     A whole sweep's float64 answers are then never held at once (1280×720: 531 MB,
-    written, then copied into the cube by one thread)."""
+    written, then copied into the cube by one thread).
+
+    `fit`: an `(n, 3)` float64 array for each pixel's fit to its event rows, in the
+    order of `sel` (the kernel's `out_fit`: largest |residual| in σ, its event index,
+    capped sum of squares; NaN without the noise model)."""
     from . import _fused_jit as jit
 
     n, m = sel.size, prob.channels
@@ -248,6 +253,7 @@ def solve_fused(
     if back is not None:
         sel = sel[back]
     sel = readonly(sel, np.int64)  # (one kernel type: see kernel_inputs)
+    fits = np.empty((n, 3))
     if out is None:
         x, kkt = np.empty((n, m)), np.empty(n)
     else:
@@ -260,12 +266,14 @@ def solve_fused(
     def run(lo):
         hi = min(lo + block, n)
         if out is None:
-            jit.solve_pixels(sel[lo:hi], *args, x[lo:hi], kkt[lo:hi], steps[lo:hi])
+            jit.solve_pixels(
+                sel[lo:hi], *args, x[lo:hi], kkt[lo:hi], steps[lo:hi], fits[lo:hi]
+            )
             return hi - lo
         if getattr(scratch, "x", None) is None:
             scratch.x, scratch.kkt = np.empty((block, m)), np.empty(block)
         xb, kb = scratch.x[: hi - lo], scratch.kkt[: hi - lo]
-        jit.solve_pixels(sel[lo:hi], *args, xb, kb, steps[lo:hi])
+        jit.solve_pixels(sel[lo:hi], *args, xb, kb, steps[lo:hi], fits[lo:hi])
         rows = sel[lo:hi]
         if np.all(np.diff(rows) == 1):  # consecutive pixels: a slice, not a scatter
             rows = slice(int(rows[0]), int(rows[-1]) + 1)
@@ -286,6 +294,9 @@ def solve_fused(
                     progress(done)
     if back is not None:  # the answers in the caller's order of `sel`
         steps[back] = steps.copy()
+        fits[back] = fits.copy()
         if out is None:
             x[back], kkt[back] = x.copy(), kkt.copy()
+    if fit is not None:
+        fit[...] = fits
     return x, kkt, steps

@@ -1525,6 +1525,17 @@ def _median(a, k, buf):
     return buf[h] if k % 2 == 1 else (buf[h - 1] + buf[h]) / 2
 
 
+@njit(inline=True)
+@no_type_check
+def _row_z(evr, evc, evlo, evhi, sigma, x, i):
+    """|residual| of event row i at x, in standard deviations of the row."""
+    ri = evr[i]
+    zi = evc[i]
+    for j in range(evlo[i], evhi[i]):
+        zi += ri[j] * x[j]
+    return abs(zi / sigma[i])
+
+
 @njit
 @no_type_check
 def _assemble(
@@ -1699,7 +1710,7 @@ def _lane_assemble(
 def solve_pixels(
     sel, starts, use, t_sorted, s_sorted, lead, col_off, width, thr_on, thr_off,
     table, tabsum, span_lo, span_hi, spec, spec_first, dark, par, ipar, out_x,
-    out_kkt, out_steps,
+    out_kkt, out_steps, out_fit,
 ):  # fmt: skip
     """Assemble and solve the pixels `sel` (flat indices); their events are
     `t_sorted[starts[p] : starts[p] + use[p]]` (µs from the recording start, time
@@ -1710,7 +1721,13 @@ def solve_pixels(
     photoreceptor's lag, the event rows weighted by their noise, the dark-channel
     prior added (`dark`: its per-difference weight before the noise share) and the
     robust reweighting run `ipar[I_ROBUST]` times — :func:`._problem.pixel_system`
-    with `noise` and the reweighting of :func:`._pipeline._solve_chunk`."""
+    with `noise` and the reweighting of :func:`._pipeline._solve_chunk`.
+
+    `out_fit` `(n, 3)`: with the noise model, each pixel's event rows at its answer —
+    the largest |residual| in standard deviations of its row, that row's event index,
+    and the sum of the squared residuals, each capped at the rejection level
+    (`P_REJECT`); NaN without the noise model or where the solve failed
+    (:func:`._pipeline.repair_strays` reads them)."""
     m = table.shape[1]
     ntab = table.shape[0]
     base = par[P_BASE]
@@ -2179,19 +2196,13 @@ def solve_pixels(
                 if not todo[lane]:
                     continue
                 k = g_k[lane]
-                x = xs[lane]
                 evr = evrs[lane]
                 evc = evcs[lane]
                 evlo = evlos[lane]
                 evhi = evhis[lane]
-                sigma = sigmas[lane]
                 zz = zzs[lane]
                 for i in range(k):  # residuals in standard deviations of their rows
-                    ri = evr[i]
-                    zi = evc[i]
-                    for j in range(evlo[i], evhi[i]):
-                        zi += ri[j] * x[j]
-                    absz[i] = abs(zi / sigma[i])
+                    absz[i] = _row_z(evr, evc, evlo, evhi, sigmas[lane], xs[lane], i)
                 med = _median(absz, k, mbuf) if k > 0 else 0.0
                 scale = max(1.4826 * med, 1.0)
                 any_big = False
@@ -2229,6 +2240,30 @@ def solve_pixels(
                 xl, fail, free, lf, inv, p, gr, par, max_iters, lng, lzz, evrs,
                 evlos, lw,
             )  # fmt: skip
+        # How well each answer fits its event rows (out_fit).
+        for lane in range(nl):
+            r = r0 + lane
+            out_fit[r, 0] = np.nan
+            out_fit[r, 1] = np.nan
+            out_fit[r, 2] = np.nan
+            if not noisy_model or g_steps[lane] < 0:
+                continue
+            cap = par[P_REJECT] * par[P_REJECT]
+            z_max = 0.0
+            i_max = -1.0
+            total = 0.0
+            for i in range(g_k[lane]):
+                a = _row_z(
+                    evrs[lane], evcs[lane], evlos[lane], evhis[lane], sigmas[lane],
+                    xs[lane], i,
+                )  # fmt: skip
+                if a > z_max:
+                    z_max = a
+                    i_max = float(i)
+                total += min(a * a, cap)
+            out_fit[r, 0] = z_max
+            out_fit[r, 1] = i_max
+            out_fit[r, 2] = total
         if lanes:
             _write_lanes(
                 r0, nl, g_steps, ql, qvl, fu, xs, xl, gl, out_x, out_kkt, out_steps,

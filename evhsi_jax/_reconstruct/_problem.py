@@ -144,6 +144,11 @@ class ProblemConfig:
       0) instead of down-weighted: a background event inside the lit interval is not
       a noisy measurement of anything, and Huber's linear influence still lets it
       bend the spectrum.
+    - `stray_z`: a pixel whose worst event row is left this many standard
+      deviations from its answer is searched for one stray (background) event
+      inside its lit interval, and one that explains it is removed (fused backend,
+      when the calibration measured background activity;
+      :func:`._pipeline.repair_strays`). 0: never.
     - `max_reflectance`: the reconstructed cube is clipped to [0, this] (a
       non-fluorescent surface reflects at most 1; the margin covers calibration gain
       errors and surfaces brighter than the white reference).
@@ -167,6 +172,7 @@ class ProblemConfig:
     lowpass_tol: float = 0.2
     robust_c: float = 4.0
     robust_reject: float = 12.0
+    stray_z: float = 6.0
     max_reflectance: float = 1.5
 
     def __post_init__(self):
@@ -190,6 +196,8 @@ class ProblemConfig:
             raise ValueError("robust_reject must be > robust_c")
         if not self.max_reflectance > 0:
             raise ValueError("max_reflectance must be > 0")
+        if not self.stray_z >= 0:
+            raise ValueError("stray_z must be >= 0")
         if self.lowpass_passes < 0 or not self.lowpass_tol >= 0:
             raise ValueError("lowpass_passes and lowpass_tol must be >= 0")
 
