@@ -3,7 +3,9 @@
 Setup: paper rig, ideal sensor (`--sensor realistic`: the `realistic` preset, whose
 noise model — threshold noise, jitter, 10 kHz photoreceptor — the reconstruction then
 uses, as after calibrating a real rig; `--sensor threshold-noise`: per-crossing
-threshold noise 0.01 alone), one sweep (`--sweeps N`: N) of the ColorChecker (default
+threshold noise 0.01 alone; `--sensor background`: background activity of 1 Hz per
+pixel alone, whose stray events inside the lit intervals `reconstruct` searches for
+and removes unless `--stray-z 0`), one sweep (`--sweeps N`: N) of the ColorChecker (default
 96×144), reconstructed with the sensor's per-pixel thresholds (as after calibration). Per
 backend one warm-up call (compiles), then `--repeats` timed calls, all in one process;
 prints and stores the median pixels/s, the individual times, the process's CPU time
@@ -21,7 +23,8 @@ thousand px/s) and report, per backend, the share of pixels within 0.1° SAM of 
 the issue's "equal accuracy" test.
 
 Run: `.venv/bin/python experiments/bench_reconstruct.py [--size 96x144] [--repeats 5]
-[--workers 2] [--sensor ideal|realistic|threshold-noise] [--sweeps 1] [--reference]
+[--workers 2] [--sensor ideal|realistic|threshold-noise|background] [--sweeps 1]
+[--stray-z Z] [--reference]
 [--out experiments/results/bench_reconstruct.json]`.
 """
 
@@ -45,7 +48,15 @@ def main():
     )
     ap.add_argument("--reference", action="store_true")
     ap.add_argument(
-        "--sensor", default="ideal", choices=["ideal", "realistic", "threshold-noise"]
+        "--sensor",
+        default="ideal",
+        choices=["ideal", "realistic", "threshold-noise", "background"],
+    )
+    ap.add_argument(
+        "--stray-z",
+        type=float,
+        default=None,
+        help="ProblemConfig.stray_z (default its default; 0: no search for strays)",
     )
     ap.add_argument(
         "--sweeps", type=int, default=1, help="sweeps of the static recording (1)"
@@ -66,11 +77,12 @@ def main():
     import evhsi_jax as ev
 
     h, w = ev.forward.parse_size(args.size)
-    rig = (
-        ev.Rig.from_dict({"threshold_noise": 0.01})
-        if args.sensor == "threshold-noise"
-        else ev.Rig(sensor=args.sensor)
-    )
+    if args.sensor == "threshold-noise":
+        rig = ev.Rig.from_dict({"threshold_noise": 0.01})
+    elif args.sensor == "background":
+        rig = ev.Rig.from_dict({"noise_rate_hz": 1.0})
+    else:
+        rig = ev.Rig(sensor=args.sensor)
     scene = ev.load_scene("colorchecker", (h, w))
     t0 = time.perf_counter()
     events, info = ev.simulate(
@@ -81,6 +93,8 @@ def main():
     maps = dict(
         threshold_on_map=info.threshold_on, threshold_off_map=info.threshold_off
     )
+    if args.stray_z is not None:
+        maps["config"] = ev.reconstruction.ProblemConfig(stray_z=args.stray_z)
     ref = None
     if args.reference:
         t0 = time.perf_counter()
@@ -91,6 +105,7 @@ def main():
         "size": [h, w],
         "sensor": args.sensor,
         "sweeps": args.sweeps,
+        "stray_z": args.stray_z,
         "events": len(events),
         "workers": workers,
         "backends": {},

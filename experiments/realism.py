@@ -165,8 +165,8 @@ def run_case(
     except ValueError as err:
         return {"error": str(err)}
     cal = res.calibration
-    old = ev.Calibration(
-        res.rig.replace_host(**ev.Rig().effects.as_dict()),
+    old = ev.Calibration(  # (no sensor keys: no noise model, as in wave 1)
+        res.rig.replace_host(**ev.Rig().effects.as_dict(), noise_rate_hz=0.0),
         res.threshold_on_map,
         res.threshold_off_map,
     )
