@@ -976,7 +976,7 @@ def build_parser() -> argparse.ArgumentParser:
         "event row is left more than Z standard deviations from its answer is solved "
         "again without each event of that sweep in turn, and one that explains it is "
         f"removed as a stray background event (default {pc.stray_z:g}; 0: never; "
-        "fused backend only; README, Real sensors)",
+        "README, Real sensors)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_strict(p)

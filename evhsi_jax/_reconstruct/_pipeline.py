@@ -27,7 +27,14 @@ from .._model import Calibration, EventStream, Rig, band_table
 from . import _solvers
 from ._deblur import deblur_cube, deblur_cube_device
 from ._fused import FusedProblem, fused_supported, solve_fused
-from ._pixels import DeviceLists, PixelEvents, bucket_plan, group_pixels, pixel_lists
+from ._pixels import (
+    DeviceLists,
+    PixelEvents,
+    bucket_plan,
+    bucket_sizes,
+    group_pixels,
+    pixel_lists,
+)
 from ._problem import (
     ProblemConfig,
     dark_rows,
@@ -668,8 +675,8 @@ def reconstruct(
       `load_calibration`).
     - `solver`: a name from `SOLVERS`, `"auto"`, or a :class:`SolverSpec`.
     - `config`: the per-pixel problem's weights (:class:`ProblemConfig`). When the
-      calibration measured background activity, the fused backend then searches the
-      pixels that fit their events badly for one stray event and removes it
+      calibration measured background activity, the pixels that fit their events
+      badly are then searched for one stray event, which is removed
       (`config.stray_z`, :func:`repair_strays`; the info's `stray_events`).
     - `threshold_on_map`, `threshold_off_map`: optional per-pixel thresholds `(H, W)`
       (log units) from a calibration; default the rig's global values.
@@ -864,12 +871,13 @@ def reconstruct(
         desc=f"reconstruct ({spec.name})",
     )
     strays = 0
+    repair = (
+        noise is not None
+        and cfg.stray_z > 0
+        and rig.noise_rate_hz >= MATERIAL_BACKGROUND_HZ
+        and spec.name not in ("svd", "unconstrained")
+    )
     if fused:
-        repair = (
-            noise is not None
-            and cfg.stray_z > 0
-            and rig.noise_rate_hz >= MATERIAL_BACKGROUND_HZ
-        )
         strays = _solve_fused_all(
             rig, table, cfg, spec, sweeps, lists, lead, offsets_all, thr_on, thr_off,
             cube, kkt_all, threads, bar.update, noise, repair,
@@ -917,8 +925,15 @@ def reconstruct(
                 rig, table, cfg, spec, sub, px, sweeps, noise_j
             )  # fmt: skip
 
+    # The JAX path's stray search needs each pixel's fit to its rows (the fused
+    # kernel returns it with the answer).
+    fit_all = np.full((h * w, 3), np.nan) if repair and not fused else None
     for pixel, pix_dev, px, x, kkt in solved():
         valid = pixel >= 0
+        if fit_all is not None:
+            fit = np.asarray(_chunk_fit(rig, table, cfg, px, sweeps, noise_j, x,
+                                        float(noise[2]) > 0))  # fmt: skip
+            fit_all[pixel[valid]] = fit[valid]
         if held is not None:
             if not bool(_any_failed(x, pix_dev)):
                 held = _place(*held, pix_dev, x, kkt)
@@ -940,6 +955,29 @@ def reconstruct(
             kkt_all[pixel[valid]] = kkt[valid]
         bar.update(int(valid.sum()))
     bar.close()
+    if fit_all is not None:
+        sel = np.flatnonzero(counts)
+        if np.any(np.nan_to_num(fit_all[sel, 0], nan=0.0) > cfg.stray_z):
+            kept = screened if not on_device else (
+                events if keep is None else _take_kept(events, keep, n_kept)
+            )  # fmt: skip
+            host_lists = pixel_lists(kept, t_start_us)
+            solve_variants = functools.partial(
+                _solve_variants_jax, rig, table,
+                dataclasses.replace(cfg, robust_steps=0), spec, sub, chunk, sweeps,
+                noise_j, host_lists, lead, offsets_all, thr_on, thr_off, np_dtype,
+            )  # fmt: skip
+            pix, xs, kkts = repair_strays(
+                solve_variants, sel, fit_all[sel], host_lists, cfg, period
+            )
+            strays = pix.size
+            if strays and held is not None:
+                held = (
+                    held[0].at[pix].set(jnp.asarray(xs, jnp.float32)),
+                    held[1].at[pix].set(jnp.asarray(kkts, jnp.float32)),
+                )
+            elif strays:
+                cube[pix], kkt_all[pix] = xs, kkts
     gain = None  # white-reference correction: times 1/gain (a product rounds alike
     # on every device; XLA's division need not be NumPy's to the last bit)
     if np.any(np.asarray(rig.channel_gain) != 1.0):
@@ -1138,10 +1176,15 @@ def _solve_fused_all(
             rig, table, dataclasses.replace(cfg, robust_steps=0), spec, w, offsets,
             sweeps, noise,
         )  # fmt: skip
-        strays = repair_strays(
-            plain, sel, fit, lists, lead, thr_on, thr_off, cube, kkt_all, cfg,
-            float(_rig_geometry(rig, w)["period_us"]), threads,
+        solve_variants = functools.partial(
+            _solve_variants, plain, lists, lead, thr_on, thr_off, threads=threads
+        )
+        pix, xs, kkts = repair_strays(
+            solve_variants, sel, fit, lists, cfg,
+            float(_rig_geometry(rig, w)["period_us"]),
         )  # fmt: skip
+        cube[pix], kkt_all[pix] = xs, kkts
+        strays = pix.size
     bad = np.flatnonzero(steps < 0)
     if bad.size:  # their events in padded slots, as group_pixels would give them
         pix = sel[bad]
@@ -1187,11 +1230,8 @@ def _sweep_span(t_rel, start, k, i, period_us):
     return lo, hi
 
 
-def repair_strays(
-    prob, sel, fit, lists, lead, thr_on, thr_off, cube, kkt_all, cfg, period_us,
-    threads=None,
-) -> int:  # fmt: skip
-    """Find and remove single stray events inside the lit interval (fused backend).
+def repair_strays(solve_variants, sel, fit, lists, cfg, period_us):
+    """Find and remove single stray events inside the lit interval.
 
     A background event inside a pixel's lit interval is not a threshold crossing of
     the light, yet its row and the next one's reference say it is. The solve can fit
@@ -1212,18 +1252,24 @@ def repair_strays(
     A stage's variant with the smallest sum of squared residuals replaces the
     answer when its worst row is within `cfg.stray_z` and the sum fell by more
     than `cfg.stray_z`²; otherwise the pixel keeps its answer (a bad fit with
-    another cause is not "repaired" by dropping a real event). `prob` is the
-    problem without the robust reweighting (the variant without the stray has no
-    outlier left, and the others' misfit is what tells them apart). One stray
-    event per pixel and recording.
+    another cause is not "repaired" by dropping a real event). One stray event per
+    pixel and recording.
 
-    Writes the new answers into `cube` and `kkt_all`; returns how many events were
-    removed."""
-    counts, starts, t_rel, sgn = lists
+    `solve_variants(orig, drop)` solves, for each variant v, pixel `orig[v]`'s
+    events without its `drop[v]`-th and returns `(x, kkt, fit)` per variant (fit as
+    the kernel's, inf where a solve failed): :func:`_solve_variants` (fused) or
+    :func:`_solve_variants_jax`, each without the robust reweighting (the variant
+    without the stray has no outlier left, and the others' misfit is what tells
+    them apart). `sel`, `fit`: the solved pixels (flat indices) and their fits;
+    `lists`: the pixels' event lists (:func:`._pixels.pixel_lists`).
+
+    **Returns:** `(pixels, x, kkt)` — the repaired pixels and their new answers (one
+    stray event removed from each)."""
+    counts, starts, t_rel, _ = lists
     z = fit[:, 0]
     flag = np.flatnonzero(np.nan_to_num(z, nan=0.0) > cfg.stray_z)
     flag = flag[counts[sel[flag]] >= 2]
-    removed = 0
+    out_pix, out_x, out_kkt = [], [], []
     for b0 in range(0, flag.size, STRAY_BLOCK):
         f = flag[b0 : b0 + STRAY_BLOCK]
         pix = sel[f]
@@ -1250,10 +1296,7 @@ def repair_strays(
                 np.repeat(a, np.maximum(b - a + 1, 0)) + _ramp(np.maximum(b - a + 1, 0))
                 for a, b in ranges
             ])  # fmt: skip
-            vx, vkkt, vfit = _solve_variants(
-                prob, lists, lead, thr_on, thr_off, pix[owner], np.zeros_like(owner),
-                k[owner], drop, 0.0, lead[pix[owner]], threads,
-            )  # fmt: skip
+            vx, vkkt, vfit = solve_variants(pix[owner], drop)
             # Each pixel's best variant: the smallest sum of squared residuals.
             chi = vfit[:, 2]
             best_chi = np.full(pix.size, np.inf)
@@ -1263,11 +1306,13 @@ def repair_strays(
             best[owner[is_best]] = np.flatnonzero(is_best)  # (ties: the last)
             ok = (best >= 0) & (best_chi < fit[f, 2] - cfg.stray_z**2)
             ok[ok] = vfit[best[ok], 0] <= cfg.stray_z
-            cube[pix[ok]] = vx[best[ok]]
-            kkt_all[pix[ok]] = vkkt[best[ok]]
-            removed += int(ok.sum())
+            out_pix.append(pix[ok])
+            out_x.append(vx[best[ok]])
+            out_kkt.append(vkkt[best[ok]])
             todo = todo[~ok[todo]]
-    return removed
+    if not out_pix:
+        return np.zeros(0, np.int64), np.zeros((0, 0)), np.zeros(0)
+    return np.concatenate(out_pix), np.concatenate(out_x), np.concatenate(out_kkt)
 
 
 def _ramp(n):
@@ -1275,28 +1320,28 @@ def _ramp(n):
     return np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
 
 
-def _solve_variants(
-    prob, lists, lead, thr_on, thr_off, orig, lo, n, drop, shift, v_lead, threads
-):  # fmt: skip
-    """Solve variants of pixels' event lists through the fused kernel: variant v is
-    pixel `orig[v]`'s events `lo[v] … lo[v] + n[v] − 1` (indices within the pixel)
-    without the `drop[v]`-th of those (−1: none), their times moved back by
-    `shift[v]` µs, its first event's reference lead `v_lead[v]`. Each variant is a
+def _variant_lists(lists, orig, drop):
+    """The event lists of variants: variant v is pixel `orig[v]`'s events without
+    its `drop[v]`-th. Returns `(vk, vstart, src)`: each variant's event count and
+    start in the concatenated lists, and the source index (into the pixels' lists)
+    of each of their events."""
+    counts, starts, _, _ = lists
+    vk = counts[orig] - 1
+    vstart = np.cumsum(vk) - vk
+    vown = np.repeat(np.arange(orig.size), vk)
+    slot = np.arange(int(vk.sum())) - vstart[vown]
+    return vk, vstart, starts[orig[vown]] + slot + (slot >= drop[vown])
+
+
+def _solve_variants(prob, lists, lead, thr_on, thr_off, orig, drop, *, threads=None):
+    """:func:`repair_strays`' variants through the fused kernel. Each variant is a
     virtual pixel in its pixel's column (the kernel looks the column offset up by
     index mod width), one virtual row per variant of that column. Returns `(x, kkt,
-    fit)` per variant (x NaN and fit inf where a factorisation failed)."""
-    counts, starts, t_rel, sgn = lists
+    fit)` per variant (fit inf where a factorisation failed)."""
+    _, _, t_rel, sgn = lists
     w = prob.width
     nv = orig.size
-    drop = np.broadcast_to(drop, nv)
-    vk = n - (drop >= 0)
-    vstart = np.cumsum(vk) - vk
-    vown = np.repeat(np.arange(nv), vk)
-    slot = np.arange(int(vk.sum())) - vstart[vown]
-    slot += (drop[vown] >= 0) & (slot >= drop[vown])
-    src = starts[orig[vown]] + lo[vown] + slot
-    vt = t_rel[src] - np.broadcast_to(shift, nv)[vown]
-    vs = sgn[src]
+    vk, vstart, src = _variant_lists(lists, orig, drop)
     col = orig % w
     order = np.argsort(col, kind="stable")
     rank = np.empty(nv, np.int64)
@@ -1306,15 +1351,72 @@ def _solve_variants(
     v_starts, v_use = np.zeros(size, np.int64), np.zeros(size, np.int64)
     v_starts[vpix], v_use[vpix] = vstart, vk
     lead_v, on_v, off_v = np.zeros(size), np.ones(size), np.ones(size)
-    lead_v[vpix] = np.broadcast_to(v_lead, nv)
-    on_v[vpix], off_v[vpix] = thr_on[orig], thr_off[orig]
+    lead_v[vpix], on_v[vpix], off_v[vpix] = lead[orig], thr_on[orig], thr_off[orig]
     fit = np.empty((nv, 3))
     x, kkt, steps = solve_fused(
-        prob, vpix, v_starts, v_use, vt, vs, lead_v, on_v, off_v, threads=threads,
-        fit=fit,
+        prob, vpix, v_starts, v_use, t_rel[src], sgn[src], lead_v, on_v, off_v,
+        threads=threads, fit=fit,
     )  # fmt: skip
     fit[steps < 0] = np.inf
     return x, kkt, fit
+
+
+def _solve_variants_jax(
+    rig, table, cfg, spec, sub, chunk, sweeps, noise, lists, lead, offsets, thr_on,
+    thr_off, dtype, orig, drop,
+):  # fmt: skip
+    """:func:`repair_strays`' variants through the JAX chunk kernel (`cfg` without
+    the robust reweighting), in chunks of at most `chunk` rows padded as the main
+    loop pads its own (`sub` × 2^j rows, 16 × 2^j slots: mostly shapes compiled
+    already). Returns NumPy `(x, kkt, fit)` per variant (fit inf where x is not
+    finite)."""
+    _, _, t_rel, sgn = lists
+    w = offsets.size
+    vk, vstart, src = _variant_lists(lists, orig, drop)
+    k = bucket_sizes(int(vk.max()))[-1]
+    slot = np.arange(k)
+    xs, kkts, fits = [], [], []
+    for c0 in range(0, orig.size, chunk):
+        o = orig[c0 : c0 + chunk]
+        n_pad = sub * (1 << int(math.ceil(math.log2(math.ceil(o.size / sub)))))
+        mask = np.zeros((n_pad, k), bool)
+        mask[: o.size] = slot[None, :] < vk[c0 : c0 + o.size, None]
+        at = np.zeros((n_pad, k), np.int64)
+        at[: o.size] = vstart[c0 : c0 + o.size, None] + slot[None, :]
+        at = np.where(mask, src[np.minimum(at, max(src.size - 1, 0))], 0)
+        pix = np.zeros(n_pad, np.int64)
+        pix[: o.size] = o
+        px = _device_pixels(
+            np.where(mask, t_rel[at], 0.0), np.where(mask, sgn[at], 0), mask, pix,
+            pix % w, np.where(np.arange(n_pad) < o.size, lead[pix], 0.0), offsets,
+            thr_on, thr_off, dtype,
+        )  # fmt: skip
+        x, kkt = _solve_chunk_stored(rig, table, cfg, spec, sub, px, sweeps, noise)
+        fit = np.array(_chunk_fit(rig, table, cfg, px, sweeps, noise, x,
+                                  float(noise[2]) > 0))  # fmt: skip
+        x, kkt = np.asarray(x), np.asarray(kkt)
+        fit[~np.all(np.isfinite(x), axis=1)] = np.inf
+        xs.append(x[: o.size])
+        kkts.append(kkt[: o.size])
+        fits.append(fit[: o.size])
+    return np.concatenate(xs), np.concatenate(kkts), np.concatenate(fits)
+
+
+@eqx.filter_jit
+def _chunk_fit(rig, table, cfg: ProblemConfig, px: PixelEvents, sweeps: int, noise, x,
+               lowpass: bool):  # fmt: skip
+    """Each pixel's fit to its event rows at its answer `x`, as the fused kernel's
+    `out_fit` (`(n, 3)`: the largest |residual| in σ, its event's slot, the sum of
+    squares capped at `robust_reject`²); with a photoreceptor (`lowpass`) its
+    model's rows linearised at `x`."""
+    with jax.default_matmul_precision(MATMUL_PRECISION):
+        rows = _batch_rows(rig, table, cfg, px, sweeps, noise, x if lowpass else None)
+        xa = jnp.concatenate([x, jnp.ones_like(x[:, :1])], axis=1)
+        z = jnp.abs(jnp.einsum("bkm,bm->bk", rows.events, xa) / rows.sigma)
+    z = jnp.where(px.mask, jnp.nan_to_num(z, nan=jnp.inf), 0.0)
+    total = jnp.sum(jnp.minimum(z * z, cfg.robust_reject**2), axis=1)
+    return jnp.stack([jnp.max(z, axis=1), jnp.argmax(z, axis=1).astype(z.dtype), total],
+                     axis=1)  # fmt: skip
 
 
 #: Events per thread task of the numba screening (slices run on every usable core).

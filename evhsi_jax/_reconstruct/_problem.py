@@ -146,8 +146,8 @@ class ProblemConfig:
       bend the spectrum.
     - `stray_z`: a pixel whose worst event row is left this many standard
       deviations from its answer is searched for one stray (background) event
-      inside its lit interval, and one that explains it is removed (fused backend,
-      when the calibration measured background activity;
+      inside its lit interval, and one that explains it is removed (when the
+      calibration measured background activity;
       :func:`._pipeline.repair_strays`). 0: never.
     - `max_reflectance`: the reconstructed cube is clipped to [0, this] (a
       non-fluorescent surface reflects at most 1; the margin covers calibration gain

@@ -86,6 +86,21 @@ def test_stray_events_are_found_and_removed(background):
     assert info_q.stray_events == 0
 
 
+def test_the_jax_backend_finds_the_same_strays(background):
+    """The JAX path (`_chunk_fit`, `_solve_variants_jax`) flags and repairs the same
+    pixels as the fused kernel, to the same answers within float32 rounding."""
+    out, _ = background
+    rig, events, info = out[20.0]
+    cal = ev.Calibration(rig, info.threshold_on, info.threshold_off)
+    fused, f_info = ev.reconstruct(events, cal, return_info=True, backend="fused")
+    jx, j_info = ev.reconstruct(events, cal, return_info=True, backend="jax")
+    off = ev.reconstruct(events, cal, config=ProblemConfig(stray_z=0.0), backend="jax")
+    assert j_info.stray_events > 0.9 * f_info.stray_events
+    assert np.mean(ev.metrics.sam_map_deg(jx, fused) < 0.5) > 0.97
+    changed = np.any(jx != off, axis=-1)
+    assert changed.sum() >= 0.9 * j_info.stray_events
+
+
 def test_kernel_fit_is_the_rows_misfit(background):
     """The kernel's per-pixel fit: NaN without a noise model; with one, the largest
     |residual| (σ), its event's index within the pixel and the capped sum of squares,
