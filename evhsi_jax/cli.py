@@ -483,6 +483,11 @@ def _reconstruct_per_sweep(args, config):
             f"{out}: {res.reconstructed} reconstructed in {res.seconds:.1f} s "
             f"({rate:.2f} sweeps/s, {rate * n:,.0f} px/s), {res.skipped} already done"
             + (f"; {len(low)} flagged low-events: {low[:10]}" if low else "")
+            + (
+                f"; {res.stray_events:,} stray event(s) inside lit intervals removed"
+                if res.stray_events
+                else ""
+            )
         )
     return 0
 

@@ -112,6 +112,8 @@ class StreamResult:
     - `stale_removed`: temporary files of killed runs removed from the folder.
     - `decode`: the event file's decode counters (`DecodeReport.as_dict`; None for an
       in-memory stream).
+    - `stray_events`: stray events inside lit intervals the sweeps of this run
+      removed (`ReconstructionInfo.stray_events`, summed).
     """
 
     out_dir: Path
@@ -124,6 +126,7 @@ class StreamResult:
     solve_seconds: float
     stale_removed: int = 0
     decode: dict | None = None
+    stray_events: int = 0
 
 
 # --- index --------------------------------------------------------------------------
@@ -628,6 +631,7 @@ def reconstruct_sweeps(
         carry = _ReferenceCarry(h, w, eta)
         n_new = n_skip = 0
         solve_s = 0.0
+        strays = 0
         bar = tqdm(disable=not progress, unit="sweep", desc="reconstruct sweeps")
         try:
             out.commit(force=True)
@@ -660,6 +664,7 @@ def reconstruct_sweeps(
                 )
                 dt = time.perf_counter() - t0
                 solve_s += dt
+                strays += info.stray_events
                 carry.add(ev)
                 entry = out.write_sweep(k, start, stop, ev, cube, info, dt, rig)
                 n_new += 1
@@ -686,6 +691,7 @@ def reconstruct_sweeps(
         solve_seconds=solve_s,
         stale_removed=stale,
         decode=None if reader is None else reader.report.as_dict(),
+        stray_events=strays,
     )
 
 

@@ -152,7 +152,8 @@ def test_sweep_span():
 
 def test_stray_z_option(background, tmp_path, capsys):
     """`reconstruct --stray-z Z` is `ProblemConfig(stray_z=Z)` (0: no search), and
-    says how many stray events it removed; a negative Z is one line and exit 2."""
+    says how many stray events it removed (with `--per-sweep`, the run's total); a
+    negative Z is one line and exit 2."""
     from evhsi_jax.cli import main
 
     out, _ = background
@@ -173,6 +174,11 @@ def test_stray_z_option(background, tmp_path, capsys):
         np.testing.assert_array_equal(np.load(dest)["cube"], ref)
         printed = capsys.readouterr().out
         assert ("stray event(s) inside lit intervals removed" in printed) == said
+    capsys.readouterr()  # per sweep: the run's total
+    assert main(["reconstruct", str(tmp_path / "ev.npz"), "--calib",
+                 str(tmp_path / "cal.json"), "--out", str(tmp_path / "frames"),
+                 "--per-sweep", "--quiet", "--backend", "fused"]) == 0  # fmt: skip
+    assert "stray event(s) inside lit intervals removed" in capsys.readouterr().out
     code = main(["reconstruct", str(tmp_path / "ev.npz"), "--calib",
                  str(tmp_path / "cal.json"), "--out", str(tmp_path / "bad.npz"),
                  "--stray-z", "-1"])  # fmt: skip
