@@ -69,8 +69,8 @@ def test_stray_events_are_found_and_removed(background):
         events, cal, config=ProblemConfig(stray_z=0.0), backend="fused"
     )
     changed = np.any(on != off, axis=-1).ravel()
-    # (a repaired answer may clip to the same cube)
-    assert info_on.stray_events >= changed.sum() >= 0.9 * info_on.stray_events > 0
+    # (a repaired answer may clip to the same cube; a pixel may lose two strays)
+    assert info_on.stray_events >= changed.sum() >= 0.5 * info_on.stray_events > 0
     assert not np.any(changed & ~touched)  # pixels without one keep their answer
     sam_on = ev.metrics.sam_map_deg(on, truth).ravel()
     sam_off = ev.metrics.sam_map_deg(off, truth).ravel()
@@ -84,6 +84,55 @@ def test_stray_events_are_found_and_removed(background):
     )
     _, info_q = ev.reconstruct(events, quiet, return_info=True, backend="fused")
     assert info_q.stray_events == 0
+
+
+def test_two_strays_in_two_sweeps_are_both_removed():
+    """Two stray events of the wrong polarity put into one pixel's lit intervals, one
+    per sweep, of a two-sweep capture without background (each pixel of a sample in
+    its own run): the second round finds the second one in about half of them, and
+    those get back the answer they had without the strays; the others keep theirs."""
+    h, w = SIZE
+    scene = ev.load_scene("colorchecker", SIZE)
+    clean, info = ev.simulate(scene, ev.Rig(), sweeps=2, key=jr.key(3),
+                              return_info=True)  # fmt: skip
+    # A calibration that measured background activity (the search is on).
+    cal = ev.Calibration(ev.Rig(noise_rate_hz=20.0), info.threshold_on,
+                         info.threshold_off)  # fmt: skip
+    ref = ev.reconstruct(clean, cal, backend="fused").reshape(h * w, -1)
+    x, y, t, pol = (np.asarray(a) for a in (clean.x, clean.y, clean.t_us, clean.p))
+    flat = y.astype(np.int64) * w + x
+    repaired = 0
+    for p in range(0, h * w, 12):
+        mine = np.flatnonzero(flat == p)
+        add = [mine[j : j + 2] for j in (5, mine.size // 2 + 8)]
+        add_t = [(t[i] + t[i2]) // 2 for i, i2 in add]  # mid-gap, against the next
+        add_p = [1 - pol[i2] for _, i2 in add]
+        order = np.argsort(np.concatenate([t, add_t]), kind="stable")
+        both = ev.EventStream(
+            x=np.concatenate([x, [p % w] * 2])[order],
+            y=np.concatenate([y, [p // w] * 2])[order],
+            p=np.concatenate([pol, add_p])[order],
+            t_us=np.concatenate([t, add_t])[order],
+            width=w, height=h, trigger_t_us=clean.trigger_t_us,
+            trigger_p=clean.trigger_p, trigger_id=clean.trigger_id,
+        )  # fmt: skip
+        on, got = ev.reconstruct(both, cal, return_info=True, backend="fused")
+        sam = float(ev.metrics.sam_map_deg(on.reshape(h * w, -1)[p][None],
+                                           ref[p][None])[0])  # fmt: skip
+        assert got.stray_events in (0, 2)
+        if got.stray_events == 2:
+            repaired += 1
+            assert sam < 0.05
+    assert repaired >= 6  # of 16
+
+
+def test_undropped():
+    """Variant slots back to the pixel's own event indices, any number of drops."""
+    idx = np.array([0, 1, 2, 3, 0, 1, 2])
+    drops = np.array([[1, -1]] * 4 + [[3, 0]] * 3)
+    np.testing.assert_array_equal(
+        _pipeline._undropped(idx, drops), [0, 2, 3, 4, 1, 2, 4]
+    )
 
 
 def test_the_jax_backend_finds_the_same_strays(background):
