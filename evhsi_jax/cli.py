@@ -367,7 +367,7 @@ _DEBLUR = {"auto": None, "on": True, "off": False}
 def _problem_config(args):
     """The per-pixel problem's settings that `reconstruct` options change (None:
     the defaults)."""
-    stray_z = getattr(args, "stray_z", None)
+    stray_z = args.stray_z
     if args.photoreceptor_passes is None and stray_z is None:
         return None
     if args.photoreceptor_passes is not None and not 0 <= args.photoreceptor_passes <= 16:
@@ -979,8 +979,9 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="Z",
         help="when the calibration measured background activity, a pixel whose worst "
         "event row is left more than Z standard deviations from its answer is solved "
-        "again without each event of that sweep in turn, and one that explains it is "
-        f"removed as a stray background event (default {pc.stray_z:g}; 0: never; "
+        "again without each of its events in turn (and a second time for a second "
+        "one), and those that explain it are removed as stray background events "
+        f"(default {pc.stray_z:g}; 0: never; "
         "README, Real sensors)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")

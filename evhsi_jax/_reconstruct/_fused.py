@@ -253,7 +253,7 @@ def solve_fused(
     if back is not None:
         sel = sel[back]
     sel = readonly(sel, np.int64)  # (one kernel type: see kernel_inputs)
-    fits = np.empty((n, 3))
+    fits = np.empty((n, 3)) if fit is None else fit  # (the caller's, written there)
     if out is None:
         x, kkt = np.empty((n, m)), np.empty(n)
     else:
@@ -297,6 +297,4 @@ def solve_fused(
         fits[back] = fits.copy()
         if out is None:
             x[back], kkt[back] = x.copy(), kkt.copy()
-    if fit is not None:
-        fit[...] = fits
     return x, kkt, steps

@@ -349,8 +349,7 @@ def _huber_weights(cfg: ProblemConfig, rows, mask, x):
     larger of that and the pixel's own typical residual (1.4826 × median |z| over its
     events), so a model error shared by all its rows is not an outlier. Returns the
     event rows' weights `(n, k)` and whether any row of the batch is far out."""
-    xa = jnp.concatenate([x, jnp.ones_like(x[:, :1])], axis=1)
-    z = jnp.einsum("bkm,bm->bk", rows.events, xa) / rows.sigma
+    z = _standard_residuals(rows, x)
     med = jnp.nanmedian(jnp.where(mask, jnp.abs(z), jnp.nan), axis=1)
     scale = jnp.maximum(1.4826 * jnp.nan_to_num(med), 1.0)
     z = z / scale[:, None]
@@ -358,6 +357,13 @@ def _huber_weights(cfg: ProblemConfig, rows, mask, x):
     u = jnp.where(big, jnp.sqrt(cfg.robust_c / jnp.abs(z)), 1.0)
     u = jnp.where(jnp.abs(z) > cfg.robust_reject, 0.0, u)
     return u, jnp.any(big)
+
+
+def _standard_residuals(rows, x):
+    """The event rows' residuals at the answers `x` `(n, M)`, in standard deviations
+    of their rows, `(n, k)`."""
+    xa = jnp.concatenate([x, jnp.ones_like(x[:, :1])], axis=1)
+    return jnp.einsum("bkm,bm->bk", rows.events, xa) / rows.sigma
 
 
 def _batch_rows(rig, table, cfg, px: PixelEvents, sweeps: int, noise, x0=None):
@@ -676,7 +682,7 @@ def reconstruct(
     - `solver`: a name from `SOLVERS`, `"auto"`, or a :class:`SolverSpec`.
     - `config`: the per-pixel problem's weights (:class:`ProblemConfig`). When the
       calibration measured background activity, the pixels that fit their events
-      badly are then searched for one stray event, which is removed
+      badly are then searched for one or two stray events, which are removed
       (`config.stray_z`, :func:`repair_strays`; the info's `stray_events`).
     - `threshold_on_map`, `threshold_off_map`: optional per-pixel thresholds `(H, W)`
       (log units) from a calibration; default the rig's global values.
@@ -1213,16 +1219,19 @@ def _sweep_span(t_rel, start, k, i, period_us):
     """For pixels whose events are `t_rel[start : start + k]` (µs from the
     recording's start, in time order): the first and last index (within the pixel)
     of the events in the same sweep as event `i`."""
-    sweep = np.floor(t_rel / period_us).astype(np.int64)
-    own = sweep[start + i]
+
+    def sweep(j):  # (of the events looked at only, not of the whole recording)
+        return np.floor(t_rel[start + j] / period_us)
+
+    own = sweep(i)
     lo, hi = i.copy(), i.copy()
     while True:  # (a sweep holds a few dozen events: a few vectorised steps)
-        more = (lo > 0) & (sweep[start + np.maximum(lo - 1, 0)] == own)
+        more = (lo > 0) & (sweep(np.maximum(lo - 1, 0)) == own)
         if not more.any():
             break
         lo = lo - more
     while True:
-        more = (hi < k - 1) & (sweep[start + np.minimum(hi + 1, k - 1)] == own)
+        more = (hi < k - 1) & (sweep(np.minimum(hi + 1, k - 1)) == own)
         if not more.any():
             break
         hi = hi + more
@@ -1323,7 +1332,7 @@ def _search_strays(solve_variants, lists, cfg, period_us, pix, k, worst, base_ch
     near_lo = np.maximum(lo, worst - STRAY_WINDOW)
     near_hi = np.minimum(hi, worst + STRAY_WINDOW)
     ok = np.zeros(n, bool)
-    x_ok, kkt_ok = [None] * n, [None] * n
+    rep, x_rep, kkt_rep = [], [], []  # each stage's repaired pixels and answers
     seen_chi = np.full(n, np.inf)
     seen_drops = np.full((n, base_drops.shape[1] + 1), -1, np.int64)
     seen_worst = worst.copy()
@@ -1337,9 +1346,9 @@ def _search_strays(solve_variants, lists, cfg, period_us, pix, k, worst, base_ch
             ranges = [(lo[todo], near_lo[todo] - 1), (near_hi[todo] + 1, hi[todo])]
         else:
             ranges = [(np.zeros_like(todo), lo[todo] - 1), (hi[todo] + 1, k[todo] - 1)]
-        counts = [np.maximum(b - a + 1, 0) for a, b in ranges]
-        owner = np.concatenate([np.repeat(todo, c) for c in counts])
-        drop = np.concatenate([np.repeat(a, c) + _ramp(c) for (a, _), c in zip(ranges, counts)])
+        sizes = [np.maximum(b - a + 1, 0) for a, b in ranges]
+        owner = np.concatenate([np.repeat(todo, c) for c in sizes])
+        drop = np.concatenate([np.repeat(a, c) + _ramp(c) for (a, _), c in zip(ranges, sizes)])
         keep = ~np.any(base_drops[owner] == drop[:, None], axis=1)  # (not twice)
         owner, drop = owner[keep], drop[keep]
         if owner.size == 0:
@@ -1360,14 +1369,15 @@ def _search_strays(solve_variants, lists, cfg, period_us, pix, k, worst, base_ch
         seen_worst[better] = _undropped(v_worst, drops[best[better]])
         good = (best >= 0) & (best_chi < base_chi - z2)
         good[good] = vfit[best[good], 0] <= cfg.stray_z
-        for i in np.flatnonzero(good):
-            x_ok[i], kkt_ok[i] = vx[best[i]], vkkt[best[i]]
+        rep.append(np.flatnonzero(good))
+        x_rep.append(vx[best[good]])
+        kkt_rep.append(vkkt[best[good]])
         ok |= good
         todo = todo[~good[todo]]
-    rep = np.flatnonzero(ok)
-    m = vx.shape[1] if n and rep.size else 0
-    x = np.array([x_ok[i] for i in rep]).reshape(rep.size, m)
-    kkt = np.array([kkt_ok[i] for i in rep]).reshape(rep.size)
+    if not rep:  # (no variant to solve)
+        return ok, np.zeros((0, 0)), np.zeros(0), (seen_chi, seen_drops, seen_worst)
+    order = np.argsort(np.concatenate(rep))  # the answers in the order of `pix`
+    x, kkt = np.concatenate(x_rep)[order], np.concatenate(kkt_rep)[order]
     return ok, x, kkt, (seen_chi, seen_drops, seen_worst)
 
 
@@ -1478,8 +1488,7 @@ def _chunk_fit(rig, table, cfg: ProblemConfig, px: PixelEvents, sweeps: int, noi
     model's rows linearised at `x`."""
     with jax.default_matmul_precision(MATMUL_PRECISION):
         rows = _batch_rows(rig, table, cfg, px, sweeps, noise, x if lowpass else None)
-        xa = jnp.concatenate([x, jnp.ones_like(x[:, :1])], axis=1)
-        z = jnp.abs(jnp.einsum("bkm,bm->bk", rows.events, xa) / rows.sigma)
+        z = jnp.abs(_standard_residuals(rows, x))
     z = jnp.where(px.mask, jnp.nan_to_num(z, nan=jnp.inf), 0.0)
     total = jnp.sum(jnp.minimum(z * z, cfg.robust_reject**2), axis=1)
     return jnp.stack([jnp.max(z, axis=1), jnp.argmax(z, axis=1).astype(z.dtype), total],

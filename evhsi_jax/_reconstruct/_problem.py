@@ -145,8 +145,8 @@ class ProblemConfig:
       a noisy measurement of anything, and Huber's linear influence still lets it
       bend the spectrum.
     - `stray_z`: a pixel whose worst event row is left this many standard
-      deviations from its answer is searched for one stray (background) event
-      inside its lit interval, and one that explains it is removed (when the
+      deviations from its answer is searched for one or two stray (background)
+      events inside its lit intervals, and those that explain it are removed (when the
       calibration measured background activity;
       :func:`._pipeline.repair_strays`). 0: never.
     - `max_reflectance`: the reconstructed cube is clipped to [0, this] (a
