@@ -216,8 +216,26 @@ def cmd_info(args):
     return 0
 
 
+def _sweep_speed(args):
+    """`--sweep-speed` checked: "auto", "off" or a list of factors (one per sweep
+    used; with --per-sweep only auto or off)."""
+    text = args.sweep_speed.strip()
+    if text in ("auto", "off"):
+        return text
+    if args.per_sweep:
+        raise ValueError("with --per-sweep, --sweep-speed is auto or off")
+    try:
+        factors = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise ValueError(
+            f"--sweep-speed must be auto, off or factors F[,F...], got {text!r}"
+        ) from None
+    return factors
+
+
 def cmd_reconstruct(args):
     config = _problem_config(args)  # its options checked before any work
+    speed = _sweep_speed(args)
     if args.per_sweep:
         return _reconstruct_per_sweep(args, config)
     if args.max_sweeps is not None or args.restart or args.follow:
@@ -256,6 +274,7 @@ def cmd_reconstruct(args):
         deblur=_DEBLUR[args.deblur],
         backend=args.backend,
         threads=args.threads,
+        sweep_speed=speed,
     )
     elapsed = time.perf_counter() - t0
     notes = []
@@ -292,8 +311,18 @@ def cmd_reconstruct(args):
             if info.stray_events
             else ""
         )
+        + _speed_note(info.sweep_speed)
     )
     return 0
+
+
+def _speed_note(factors) -> str:
+    """The summary's words on the mirror-speed factors used (none: nothing)."""
+    if factors is None:
+        return ""
+    pct = [f"{100 * (f - 1):+.2f}" for f in factors]
+    more = f" (+{len(pct) - 8} more)" if len(pct) > 8 else ""
+    return f"; mirror speed per sweep {', '.join(pct[:8])}{more} %"
 
 
 def _with_channels(cal, channels):
@@ -410,6 +439,7 @@ def _run_sweeps(args, cal, out, roi, stop, config):
         deblur=_DEBLUR[args.deblur],
         backend=args.backend,
         threads=args.threads,
+        sweep_speed=args.sweep_speed.strip(),
     )
 
 
@@ -983,6 +1013,17 @@ def build_parser() -> argparse.ArgumentParser:
         "one), and those that explain it are removed as stray background events "
         f"(default {pc.stray_z:g}; 0: never; "
         "README, Real sensors)",
+    )
+    p.add_argument(
+        "--sweep-speed",
+        default="auto",
+        metavar="auto|off|F[,F...]",
+        help="each sweep's mirror speed relative to the calibration's: auto (default) "
+        "measures it from the recording (a mirror whose speed varies by 0.2%% from "
+        "sweep to sweep otherwise costs a sweep ~2.5° SAM; README, Real sensors), off "
+        "keeps the calibration's, or the factors, one per sweep used (e.g. "
+        "1.002,0.999); the summary lists the factors used (the --per-sweep index: "
+        "each sweep's sweep_speed)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_strict(p)

@@ -25,3 +25,4 @@ from ._solvers import active_set_batch as active_set_batch
 from ._solvers import apg as apg
 from ._solvers import kkt_residual as kkt_residual
 from ._solvers import svd_nullvector as svd_nullvector
+from ._sweep_speed import warp_times as warp_times

@@ -43,6 +43,13 @@ from ._problem import (
     spectral_prior_matrix,
     system_from_rows,
 )
+from ._sweep_speed import (
+    IDEAL_NOISE,
+    SPEED_BOUND,
+    estimate_speeds,
+    warp_lists,
+)
+from ._sweep_speed import candidates as speed_candidates
 
 __all__ = ["SolverSpec", "SOLVERS", "reconstruct", "ReconstructionInfo", "solver_spec"]
 
@@ -113,6 +120,9 @@ class ReconstructionInfo:
     events_left_out: int = 0  # the events of those sweeps
     first_sweep: int = 0  # sweeps between the asked start and the first one used
     stray_events: int = 0  # events inside lit intervals removed (`repair_strays`)
+    # Each sweep's mirror-speed factor the events were read with (None: the rig's
+    # nominal speed; `reconstruct(sweep_speed=...)`, :mod:`._sweep_speed`).
+    sweep_speed: np.ndarray | None = None
 
 
 MAX_WHOLE_SWEEPS = 32
@@ -668,6 +678,7 @@ def reconstruct(
     deblur: bool | None = None,
     backend: str = "auto",
     threads: int | None = None,
+    sweep_speed="auto",
 ):
     """Reconstruct a reflectance cube from an event recording of a static scene.
 
@@ -729,6 +740,14 @@ def reconstruct(
       JAX path run in float64; float32 JAX and cuda differ from both by their
       rounding).
     - `threads`: worker threads of the fused backend (default: the usable cores).
+    - `sweep_speed`: each sweep's mirror speed relative to the calibration's.
+      `"auto"` (default): measured from the recording, one factor per sweep, when
+      there is a noise model (its σ per row makes the misfit that measures it) and
+      numba (the fused kernel solves the subsets, whatever the backend): a mirror
+      whose speed varies by 0.2 % from sweep to sweep otherwise costs a
+      ColorChecker sweep ~2.5° SAM (:mod:`._sweep_speed`); `"off"`: the nominal
+      speed; or the factors themselves, one per sweep used. The info's
+      `sweep_speed` has the factors used.
     - `mesh`: a `jax.sharding.Mesh` with a `"pixels"` axis
       (:func:`evhsi_jax.sharding.pixel_mesh`): each chunk's pixels are split over its devices,
       `chunk_pixels` per device, each with the same per-pixel kernel. A one-device
@@ -779,6 +798,7 @@ def reconstruct(
         t_start_us = int(round(t_start_us + first * period))
         stop = int(math.ceil(t_start_us + sweeps * period))
         events = events.time_window(t_start_us, stop)
+    speeds = _speed_setting(sweep_speed, sweeps)
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     if threads is not None and int(threads) < 1:
@@ -818,6 +838,7 @@ def reconstruct(
     # A bucket's last chunk is padded to sub × 2^j (small images and buckets pad
     # little); a bucket of fewer than a quarter chunk of pixels joins the next one
     # (one compiled shape less for a little padding).
+    estimate = isinstance(speeds, str) and use_numba() and len(events) > 0
     on_device = (
         not fused
         and mesh is None
@@ -828,32 +849,7 @@ def reconstruct(
         and DeviceLists.fits(events, t_start_us)
     )
     plan, lists, batches = [], None, []
-    if not on_device:
-        screened = events if keep is None else _take_kept(events, keep, n_kept)
-    if fused:
-        lists = pixel_lists(screened, t_start_us)
-        counts = lists[0]
-    elif on_device:  # sorted and cut into batches where the solve runs
-        lists = DeviceLists(events, t_start_us, keep)  # (the dropped sort last)
-        counts = lists.counts
-        plan = bucket_plan(counts, chunk, sub, chunk // 4)  # (mesh is None: n_dev 1)
-    else:
-        batches, counts, _ = group_pixels(
-            screened,
-            t_start_us=t_start_us,
-            chunk_pixels=chunk * n_dev,
-            min_chunk=sub * n_dev,
-            merge_below=chunk * n_dev // 4,
-        )
     lead = _reference_lead_us(reference_us, t_start_us, period, h, w)
-    dtype = rig.fwhm_nm.dtype  # float32 or float64: the rig decides
-    table = channel_table(rig)
-    if solve is _solve_chunk_cuda:
-        # The CUDA kernel works on each row's nonzero span: with the fused kernel's
-        # trimmed bands, ~16 channels instead of a float32 Gaussian's ~28.
-        table = table.trimmed()
-    np_dtype = np.dtype(dtype)
-    noise_j = None if noise is None else jax.device_put(np.asarray(noise, np_dtype))
     thr_on = (
         np.full(h * w, float(rig.threshold_on))
         if threshold_on_map is None
@@ -864,6 +860,43 @@ def reconstruct(
         if threshold_off_map is None
         else (_check_map(threshold_off_map, h, w, "threshold_off map"))
     )
+    factors = speeds if isinstance(speeds, np.ndarray) else None
+    if on_device:  # sorted and cut into batches where the solve runs
+        lists = DeviceLists(events, t_start_us, keep)  # (the dropped sort last)
+        counts = lists.counts
+        plan = bucket_plan(counts, chunk, sub, chunk // 4)  # (mesh is None: n_dev 1)
+        est_lists = None
+        if estimate:  # (the host's lists of the pixels that may take part only)
+            est_lists = _candidate_lists(events, keep, counts, sweeps, t_start_us)
+    else:
+        screened = events if keep is None else _take_kept(events, keep, n_kept)
+        if fused or estimate or factors is not None:
+            lists = est_lists = pixel_lists(screened, t_start_us)
+            counts = lists[0]
+    if estimate:
+        factors = _estimate_speeds(
+            rig, cfg, spec, w, offsets_all, sweeps, noise, est_lists, thr_on, thr_off,
+            period, threads,
+        ).factors  # fmt: skip
+    if factors is not None and not on_device:
+        lists = warp_lists(lists, w, offsets_all, period, factors)
+    if not on_device and not fused:
+        batches, counts, _ = group_pixels(
+            screened,
+            t_start_us=t_start_us,
+            chunk_pixels=chunk * n_dev,
+            min_chunk=sub * n_dev,
+            merge_below=chunk * n_dev // 4,
+            lists=lists,
+        )
+    dtype = rig.fwhm_nm.dtype  # float32 or float64: the rig decides
+    table = channel_table(rig)
+    if solve is _solve_chunk_cuda:
+        # The CUDA kernel works on each row's nonzero span: with the fused kernel's
+        # trimmed bands, ~16 channels instead of a float32 Gaussian's ~28.
+        table = table.trimmed()
+    np_dtype = np.dtype(dtype)
+    noise_j = None if noise is None else jax.device_put(np.asarray(noise, np_dtype))
 
     # The host's cube, unless the answers are placed into one on the device (`plan`).
     cube = kkt_all = None
@@ -895,8 +928,11 @@ def reconstruct(
             per_pixel = jax.device_put(
                 tuple(a.astype(np_dtype) for a in (lead, offsets_all, thr_on, thr_off))
             )
+            speed = None
+            if factors is not None:
+                speed = (jax.device_put(np.asarray(factors, np_dtype)), period)
             for sel, k, size in plan:
-                yield lists.batch(sel, k, size, *per_pixel, np_dtype)
+                yield lists.batch(sel, k, size, *per_pixel, np_dtype, speed)
         for b in batches:
             valid = b.pixel >= 0
             pix = np.where(valid, b.pixel, 0)
@@ -968,6 +1004,8 @@ def reconstruct(
                 events if keep is None else _take_kept(events, keep, n_kept)
             )  # fmt: skip
             host_lists = pixel_lists(kept, t_start_us)
+            if factors is not None:
+                host_lists = warp_lists(host_lists, w, offsets_all, period, factors)
             solve_variants = functools.partial(
                 _solve_variants_jax, rig, table,
                 dataclasses.replace(cfg, robust_steps=0), spec, sub, chunk, sweeps,
@@ -1035,6 +1073,7 @@ def reconstruct(
         events_left_out=n_all - len(events),
         first_sweep=first,
         stray_events=strays,
+        sweep_speed=None if factors is None else np.asarray(factors, np.float64),
     )
     return cube, info
 
@@ -1679,6 +1718,56 @@ def _gather_rows(cube, idx):
 @functools.partial(jax.jit, donate_argnums=(0,))
 def _set_rows(cube, at, vals):
     return cube.at[at].set(vals, mode="drop")
+
+
+def _speed_setting(sweep_speed, sweeps):
+    """`reconstruct`'s `sweep_speed` checked: `"auto"`, None (`"off"`) or the
+    factors as an array of `sweeps` (a `ValueError` says what is wrong)."""
+    if isinstance(sweep_speed, str):
+        if sweep_speed == "auto":
+            return "auto"
+        if sweep_speed == "off":
+            return None
+        raise ValueError(
+            f"sweep_speed must be 'auto', 'off' or one factor per sweep, not "
+            f"{sweep_speed!r}"
+        )
+    f = np.atleast_1d(np.asarray(sweep_speed, np.float64))
+    if f.ndim != 1 or f.size != sweeps:
+        raise ValueError(
+            f"sweep_speed has {f.size} factor(s); the recording uses {sweeps} sweep(s)"
+        )
+    if not np.all(np.isfinite(f)) or np.any(np.abs(f - 1.0) > SPEED_BOUND):
+        raise ValueError(f"sweep_speed factors must lie within 1 ± {SPEED_BOUND}")
+    return f
+
+
+def _candidate_lists(events, keep, counts, sweeps, t_start_us):
+    """The host's event lists (:func:`pixel_lists`) of the pixels that may take part
+    in the speed estimate (:func:`._sweep_speed.candidates`), kept events only: what
+    the estimate needs when the lists themselves are made on the device."""
+    w = events.width
+    take = np.zeros(counts.size, bool)
+    take[speed_candidates(counts, sweeps)] = True
+    sel = take[events.y.astype(np.int64) * w + events.x.astype(np.int64)]
+    if keep is not None:
+        sel &= keep
+    return pixel_lists(events.take(sel), t_start_us)
+
+
+def _estimate_speeds(rig, cfg, spec, w, offsets, sweeps, noise, lists, thr_on,
+                     thr_off, period, threads):  # fmt: skip
+    """:func:`._sweep_speed.estimate_speeds` with a setting the fused kernel runs
+    (the active-set solver and the linear lookup, whatever the call's)."""
+    if fused_supported(spec, cfg) is not None:
+        spec = solver_spec("active-set")
+        cfg = dataclasses.replace(cfg, lookup_order=1, nonneg=True)
+    if noise is None:  # (an ideal sensor: rows weighted as for a small noise)
+        noise = IDEAL_NOISE
+    return estimate_speeds(
+        rig, channel_table(rig), cfg, spec, w, offsets, sweeps, noise, lists, thr_on,
+        thr_off, period, threads=threads,
+    )  # fmt: skip
 
 
 def _reference_lead_us(reference_us, t_start_us, period, h, w) -> np.ndarray:

@@ -120,6 +120,7 @@ def group_pixels(
     min_chunk: int | None = None,
     max_events: int | None = None,
     merge_below: int = 0,
+    lists=None,
 ):
     """Cut an event stream into per-pixel padded batches.
 
@@ -137,6 +138,8 @@ def group_pixels(
     - `merge_below`: a bucket with fewer pixels than this joins the next larger one
       (padded to its length) instead of making batches of its own shape: one compiled
       shape less (a trace of ~0.8 s and a compilation) for a little padding.
+    - `lists`: the stream's :func:`pixel_lists` from `t_start_us` when the caller has
+      them already (possibly with times moved: `reconstruct`'s per-sweep speed).
 
     With numba (the default where it imports; `EVHSI_NO_NUMBA=1` turns it off) the
     sort by pixel is a counting sort (:func:`evhsi_jax._base.stable_argsort_int`) and
@@ -157,7 +160,9 @@ def group_pixels(
     jit = None
     if use_numba():
         from . import _group_jit as jit
-    counts, starts, t_rel, sgn = pixel_lists(events, t_start_us)
+    if lists is None:
+        lists = pixel_lists(events, t_start_us)
+    counts, starts, t_rel, sgn = lists
     use = counts if max_events is None else np.minimum(counts, max_events)
     batches = []
     for sel, k, size in bucket_plan(use, chunk_pixels, min_chunk, merge_below):
@@ -307,11 +312,14 @@ class DeviceLists:
             and int(events.t_us[0]) >= int(t_start_us)
         )
 
-    def batch(self, sel, k, size, lead, offsets, thr_on, thr_off, dtype):
+    def batch(self, sel, k, size, lead, offsets, thr_on, thr_off, dtype, speed=None):
         """The :class:`PixelEvents` of the pixels `sel` (ascending flat indices) with
         `k` slots, padded to `size` rows, on the device. `lead`, `offsets`,
         `thr_on`, `thr_off`: the device copies of the per-pixel clock shift, the
-        per-column offsets and the per-pixel thresholds (in `dtype`).
+        per-column offsets and the per-pixel thresholds (in `dtype`). `speed`:
+        optionally `(factors, period_us)`, each sweep's mirror-speed factor (a device
+        array) and the period: the times are then moved as
+        :func:`._sweep_speed.warp_times` moves them (in `dtype`).
 
         **Returns:** `(pixel, pixel_device, events)` — the padded flat indices (−1 for
         padding) on the host and their int32 copy on the device (sent once), and the
@@ -319,10 +327,11 @@ class DeviceLists:
         pixel = np.full(size, -1, np.int32)
         pixel[: sel.size] = sel
         pixel_device = jax.device_put(pixel)
+        factors, period = (None, 0.0) if speed is None else speed
         return pixel.astype(np.int64), pixel_device, _gather_batch(
             self.t_sorted, self.s_sorted, self.starts, self.counts_device,
-            pixel_device, lead, offsets, thr_on, thr_off, k, self.width,
-            np.dtype(dtype).name,
+            pixel_device, lead, offsets, thr_on, thr_off, factors, period, k,
+            self.width, np.dtype(dtype).name,
         )  # fmt: skip
 
 
@@ -365,11 +374,12 @@ def _sort_by_pixel(x, y, t_rel, p, width, n_pix):
     return counts, starts, t_rel[order], sgn[order]
 
 
-@functools.partial(jax.jit, static_argnums=(9, 10, 11))
+@functools.partial(jax.jit, static_argnums=(11, 12, 13))
 def _gather_batch(t_sorted, s_sorted, starts, counts, pixel, lead, offsets, thr_on,
-                  thr_off, k, width, dtype):  # fmt: skip
+                  thr_off, factors, period, k, width, dtype):  # fmt: skip
     """The :class:`PixelEvents` of the rows `pixel` (−1: padding) with `k` slots, as
-    `_pipeline._device_pixels` makes them from the host's batch."""
+    `_pipeline._device_pixels` makes them from the host's batch (`factors`: None,
+    or each sweep's mirror-speed factor, the times then moved by it)."""
     valid = pixel >= 0
     p = jnp.where(valid, pixel, 0)
     slot = jnp.arange(k)
@@ -378,6 +388,14 @@ def _gather_batch(t_sorted, s_sorted, starts, counts, pixel, lead, offsets, thr_
     idx = jnp.where(mask, starts[p][:, None] + slot[None, :], 0)
     d = jnp.where(valid, lead[p], 0).astype(dtype)
     t = t_sorted[idx].astype(dtype) + jnp.asarray(TIMESTAMP_CENTRE_US, dtype)
+    if factors is not None:  # (_sweep_speed.warp_times, on the device)
+        period = jnp.asarray(period, dtype)
+        s = jnp.floor(t / period)
+        f = factors.astype(dtype)[jnp.clip(s, 0, factors.size - 1).astype(jnp.int32)]
+        tau = offsets[p % width].astype(dtype)[:, None]
+        local = t - s * period
+        moved = jnp.clip(f * (local + tau) - tau, 0.0, jnp.nextafter(period, 0.0))
+        t = s * period + moved
     return PixelEvents(
         jnp.where(mask, t + d[:, None], 0).astype(dtype),
         jnp.where(mask, s_sorted[idx], 0).astype(jnp.int32),

@@ -74,7 +74,13 @@ from .._io import (
     save_cube,
 )
 from .._model import Calibration, EventStream, Rig, check_roi
-from .._reconstruct import TIMESTAMP_CENTRE_US, ProblemConfig, reconstruct, solver_spec
+from .._reconstruct import (
+    TIMESTAMP_CENTRE_US,
+    ProblemConfig,
+    reconstruct,
+    solver_spec,
+    warp_times,
+)
 from ._store import VideoStore, is_video_store
 
 __all__ = [
@@ -517,6 +523,7 @@ def reconstruct_sweeps(
     deblur: bool | None = None,
     backend: str = "auto",
     threads: int | None = None,
+    sweep_speed: str = "auto",
 ) -> StreamResult:
     """Reconstruct every sweep of a recording into its own cube file (resumable).
 
@@ -533,6 +540,10 @@ def reconstruct_sweeps(
     - `out_dir`: the dataset folder (created; its parent must exist).
     - `solver`, `config`, `chunk_pixels`, `sub_batch`, `mesh`, `deblur`: as for
       :func:`evhsi_jax.reconstruct` (`mesh` shards each sweep's pixels over devices).
+    - `sweep_speed`: `"auto"` (each sweep's mirror speed measured from its events,
+      as `reconstruct` does; the index entry's `sweep_speed` has the factor) or
+      `"off"`. The next sweep's carried references are then at the times the
+      factor gives the last events.
     - `triggers`: `"auto"` (encoder triggers if the first periods hold any, else the
       period), `"require"` or `"ignore"`; without triggers, sweeps start at
       `phase_us + j period_us` (defaults 0 and the rig's period; the band's sweep
@@ -619,6 +630,10 @@ def reconstruct_sweeps(
         settings["roi"] = list(roi)
     if deblur is not None:  # (absent by default: older datasets keep their fingerprint)
         settings["deblur"] = bool(deblur)
+    if sweep_speed not in ("auto", "off"):
+        raise ValueError(f"sweep_speed must be 'auto' or 'off', not {sweep_speed!r}")
+    if sweep_speed != "auto":  # (likewise)
+        settings["sweep_speed"] = sweep_speed
     fp = _fingerprint(settings)
 
     out = _SweepOutput(out_dir, writer, index_interval_s)
@@ -628,7 +643,7 @@ def reconstruct_sweeps(
         index = out.new_index(
             fp, settings, h, w, rig, period, cutter.mode, low_event_rel
         )
-        carry = _ReferenceCarry(h, w, eta)
+        carry = _ReferenceCarry(h, w, eta, rig.column_offsets(w), float(rig.period_us))
         n_new = n_skip = 0
         solve_s = 0.0
         strays = 0
@@ -641,7 +656,7 @@ def reconstruct_sweeps(
                 carry.add(before)
                 if k in done and done[k]["start_us"] == start:
                     n_skip += 1
-                    carry.add(ev)
+                    carry.add(ev, start, done[k].get("sweep_speed"))
                     bar.update(1)
                     continue
                 t0 = time.perf_counter()
@@ -661,11 +676,13 @@ def reconstruct_sweeps(
                     deblur=deblur,
                     backend=backend,
                     threads=threads,
+                    sweep_speed=sweep_speed,
                 )
                 dt = time.perf_counter() - t0
                 solve_s += dt
                 strays += info.stray_events
-                carry.add(ev)
+                factor = None if info.sweep_speed is None else float(info.sweep_speed[0])
+                carry.add(ev, start, factor)
                 entry = out.write_sweep(k, start, stop, ev, cube, info, dt, rig)
                 n_new += 1
                 bar.update(1)
@@ -698,21 +715,30 @@ def reconstruct_sweeps(
 class _ReferenceCarry:
     """Each pixel's last event time so far, carried from sweep to sweep: the next
     sweep's first event of a pixel refers to the release after it (module docstring,
-    "per-sweep reference")."""
+    "per-sweep reference"). A sweep read with a mirror-speed factor
+    (`reconstruct(sweep_speed=...)`) leaves its events' times as the factor moved
+    them (:func:`evhsi_jax._reconstruct._sweep_speed.warp_times`): the reference
+    lies where the band leaves the pixel, on a steep flank."""
 
-    def __init__(self, h: int, w: int, eta_us: float):
+    def __init__(self, h: int, w: int, eta_us: float, offsets_us=None, period_us=None):
         self.h, self.w, self.eta = h, w, eta_us
-        self.last_t = np.full(h * w, -1, np.int64)  # -1: no event yet
+        self.offsets = None if offsets_us is None else np.asarray(offsets_us, np.float64)
+        self.period = period_us
+        self.last_t = np.full(h * w, np.nan)  # (event time + TIMESTAMP_CENTRE_US)
 
-    def add(self, ev: EventStream | None) -> None:
-        if ev is not None and len(ev):
-            pix = ev.y.astype(np.int64) * self.w + ev.x.astype(np.int64)
-            np.maximum.at(self.last_t, pix, ev.t_us)
+    def add(self, ev: EventStream | None, start=None, factor=None) -> None:
+        if ev is None or not len(ev):
+            return
+        pix = ev.y.astype(np.int64) * self.w + ev.x.astype(np.int64)
+        t = ev.t_us.astype(np.float64) + TIMESTAMP_CENTRE_US
+        if factor is not None and factor != 1.0 and self.offsets is not None:
+            t = start + warp_times(
+                t - start, ev.x.astype(np.int64), self.offsets, self.period, [factor]
+            )  # fmt: skip
+        np.fmax.at(self.last_t, pix, t)
 
     def reference_us(self) -> np.ndarray:
-        lt = self.last_t
-        ref = np.where(lt >= 0, lt + TIMESTAMP_CENTRE_US + self.eta, np.nan)
-        return ref.reshape(self.h, self.w)
+        return (self.last_t + self.eta).reshape(self.h, self.w)
 
 
 class _SweepOutput:
@@ -807,6 +833,8 @@ class _SweepOutput:
             "pixels_solved": int(info.solved.sum()),
             "seconds": round(seconds, 4),
         }
+        if info.sweep_speed is not None:  # (the mirror-speed factor it was read with)
+            entry["sweep_speed"] = float(info.sweep_speed[0])
         if self.writer:
             srgb = np.round(255 * cube_to_srgb(cube, rig.wavelengths_nm))
         if video is not None:

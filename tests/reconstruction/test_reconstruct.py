@@ -124,7 +124,8 @@ def test_device_grouping_gives_the_host_batches(capture, monkeypatch):
 
     rig, _, events, info = capture
     kw = dict(threshold_on_map=info.threshold_on, threshold_off_map=info.threshold_off,
-              backend="jax", chunk_pixels=32, sub_batch=8, return_info=True)  # fmt: skip
+              backend="jax", chunk_pixels=32, sub_batch=8, return_info=True,
+              sweep_speed="off")  # fmt: skip
     calls = []
     real = _pixels.DeviceLists.batch
     monkeypatch.setattr(_pixels.DeviceLists, "batch",
@@ -162,6 +163,19 @@ def test_device_grouping_gives_the_host_batches(capture, monkeypatch):
     assert per_place[0].max() == np.float32(
         ev.reconstruction.ProblemConfig().max_reflectance
     )
+    # The mirror-speed estimate: the same factor from the host's lists of the
+    # candidate pixels as from all of them; the times moved on the device within a
+    # float32 rounding of the host's float64 move.
+    kw["sweep_speed"] = "auto"
+    per_place = []
+    for where in (False, True):
+        monkeypatch.setattr(_pipeline, "DEVICE_GROUPING", where)
+        per_place.append(ev.reconstruct(events, rig, **kw))
+    (c_host, i_host), (c_dev, i_dev) = per_place
+    assert i_host.sweep_speed[0] != 1.0
+    np.testing.assert_array_equal(i_host.sweep_speed, i_dev.sweep_speed)
+    assert ev.metrics.sam_map_deg(c_host, c_dev).max() < 0.1  # (the equal accuracy)
+    np.testing.assert_allclose(c_host, c_dev, atol=1e-3)
 
 
 def test_device_finish_is_the_hosts():
@@ -240,7 +254,7 @@ def test_device_fill_and_deblur_are_the_hosts(capture, monkeypatch):
     for where in (False, True):
         monkeypatch.setattr(_pipeline, "DEVICE_GROUPING", where)
         cubes.append(ev.reconstruct(events, cal, backend="jax", chunk_pixels=32,
-                                    sub_batch=8))  # fmt: skip
+                                    sub_batch=8, sweep_speed="off"))  # fmt: skip
     np.testing.assert_allclose(cubes[1], cubes[0], atol=5e-6, rtol=0)
     assert cubes[1].max() <= ev.reconstruction.ProblemConfig().max_reflectance
 

@@ -1,0 +1,248 @@
+"""Each sweep's mirror speed, measured from the recording it is reconstructed from.
+
+A mirror whose speed differs from sweep to sweep (a stepper's uneven steps, the facets
+of a polygon: the simulator's `sweep_rate_jitter`) runs the band over the channels
+faster or slower by a factor $f_s$ in sweep $s$: the band centre is
+$λ_0 + f_s βω(t + τ_x)$ at local time $t$ instead of $λ_0 + βω(t + τ_x)$. The
+calibration fits one β to all the sweeps of its chart, so it cannot know the factor
+of a sweep recorded later; left alone, a factor of 1.002 (the `realistic` preset's
+σ) misplaces the band by up to ~1 nm at the red end and costs a ColorChecker sweep
+~2.5° SAM (README, Real sensors).
+
+Every pixel of a sweep shares its factor, so the recording measures it. An event at
+local time $t$ of a sweep with factor $f$ is where the nominal sweep has its band at
+$t' = f (t + τ_x) - τ_x$ (:func:`warp_times`); with the right factor the events of
+all pixels fit the model best. :func:`estimate_speeds` solves a subset of the
+sweep's pixels (`SPEED_PIXELS`, spread over the image, each with its events of that
+sweep alone) for a few factors and takes the minimum of a parabola through their
+total misfit — the sum over pixels of the fused kernel's capped sum of squared
+standardised residuals, so it needs the noise model that gives each row its σ.
+
+On the training scene (`tcs`, 48×72, mirror-speed jitter 0.2 % alone, true
+thresholds, three draws) the misfit's minimum lay within 0.0003 of the true factor,
+and the SAM against the truth has its minimum at the same place
+(`experiments/sweep_speed.py`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from ._fused import FusedProblem, solve_fused
+
+#: Pixels solved per sweep and candidate factor (the most; fewer in small images).
+#: 256, 512 and 1024 gave the same estimates to ~0.0002 on `tcs` (four draws), whose
+#: error is a bias of ~+0.0006 (`experiments/sweep_speed.py`).
+SPEED_PIXELS = 512
+#: A pixel takes part with at least this many events in the sweep.
+SPEED_MIN_EVENTS = 8
+#: Spacing of the three factors whose parabola gives the minimum.
+SPEED_STEP = 0.002
+#: The search stays within 1 ± this (the rig key `sweep_rate_jitter` is ≤ 1 %).
+SPEED_BOUND = 0.03
+#: Fewer pixels than this in a sweep: its factor is left at 1.
+SPEED_MIN_PIXELS = 32
+#: The noise model `[σ_C, σ_t, d_w]` the subsets are weighted with when the sensor
+#: has none (ideal within what the calibration tells: σ_C < 0.002): rows of linear
+#: intensity, as the ideal solve's, each with a σ of its own.
+IDEAL_NOISE = np.array([1e-3, 0.0, 0.0])
+
+
+def warp_times(t_rel, columns, offsets_us, period_us, factors):
+    """Event times moved to where the nominal sweep has the band that a sweep run at
+    speed `factors[s]` had: local time $t$ of sweep $s$ becomes
+    $f_s (t + τ_x) - τ_x$, kept inside the sweep ([0, P)).
+
+    `t_rel`: event times from the recording's start (sweep 0 starts at 0), `columns`:
+    each event's column, `offsets_us`: τ per column, `factors`: one per sweep (events
+    after the last sweep use its factor). Monotone within a pixel's sweep, so each
+    pixel's events keep their order."""
+    t_rel = np.asarray(t_rel, np.float64)
+    factors = np.asarray(factors, np.float64)
+    s = np.floor(t_rel / period_us)
+    local = t_rel - s * period_us
+    f = factors[np.clip(s, 0, factors.size - 1).astype(np.int64)]
+    tau = np.asarray(offsets_us, np.float64)[columns]
+    moved = f * (local + tau) - tau
+    moved = np.clip(moved, 0.0, np.nextafter(period_us, 0.0))
+    return s * period_us + moved
+
+
+def warp_lists(lists, width, offsets_us, period_us, factors):
+    """:func:`warp_times` on the event lists of :func:`._pixels.pixel_lists` (a new
+    tuple; the lists given are not changed). Factors all 1 return the lists as
+    given."""
+    if np.all(np.asarray(factors) == 1.0):
+        return lists
+    counts, starts, t_rel, sgn = lists
+    columns = np.repeat(np.arange(counts.size) % width, counts)
+    return counts, starts, warp_times(t_rel, columns, offsets_us, period_us, factors), sgn
+
+
+@dataclasses.dataclass(frozen=True)
+class SpeedEstimate:
+    """What :func:`estimate_speeds` found, per sweep."""
+
+    factors: np.ndarray  # (sweeps,) the factor used (1 where not estimated)
+    pixels: np.ndarray  # (sweeps,) pixels solved to estimate it (0: not estimated)
+    evaluations: int  # subset solves in all
+
+
+def estimate_speeds(rig, table, cfg, spec, width, offsets_us, sweeps, noise, lists,
+                    thr_on, thr_off, period_us, *, threads=None) -> SpeedEstimate:  # fmt: skip
+    """Each sweep's speed factor from the recording (module docstring).
+
+    `lists`: the recording's event lists (:func:`._pixels.pixel_lists`, not warped;
+    no reference before the recording is needed: :func:`_sweep_subset`), `noise`: the
+    solve's noise model (required: the misfit is in units of each row's σ). The
+    subsets are solved by the fused kernel with `cfg` but without the robust
+    reweighting (its weights would hide what the factor changes)."""
+    plain = dataclasses.replace(cfg, robust_steps=0)
+    probs = [
+        FusedProblem(rig, table, plain, spec, width, offsets_us, n, noise)
+        for n in (1, 2)
+    ]  # (one sweep, and a sweep with the one before)
+    eta = float(rig.refractory_us)
+    counts = lists[0]
+    factors = np.ones(sweeps)
+    pixels = np.zeros(sweeps, np.int64)
+    evaluations = 0
+    pool = candidates(counts, sweeps)
+    for s in range(sweeps):
+        sub = _sweep_subset(lists, pool, s, period_us, eta, width, offsets_us,
+                            factors)  # fmt: skip
+        if sub is None:
+            continue
+        pixels[s] = sub[0].size
+        before = factors[max(s - 1, 0) : s]  # (the sweep before, estimated)
+
+        def misfit(f, sub=sub, before=before):
+            return _misfit(probs[before.size], sub, np.append(before, f), width,
+                           offsets_us, period_us, eta, thr_on, thr_off, threads,
+                           cfg.robust_reject)  # fmt: skip
+
+        factors[s], n_eval = _minimise(misfit)
+        evaluations += n_eval
+    return SpeedEstimate(factors, pixels, evaluations)
+
+
+def candidates(counts, sweeps):
+    """Pixels that may take part: enough events for every sweep to give
+    `SPEED_MIN_EVENTS`, at most 4 × `SPEED_PIXELS` of them spread evenly over the
+    image (flat order)."""
+    pix = np.flatnonzero(counts >= SPEED_MIN_EVENTS * max(1, sweeps) // 2)
+    limit = 4 * SPEED_PIXELS
+    if pix.size > limit:
+        pix = pix[np.linspace(0, pix.size - 1, limit).round().astype(np.int64)]
+    return pix
+
+
+def _sweep_subset(lists, pix, s, period_us, eta, width, offsets_us, factors):
+    """Up to `SPEED_PIXELS` of the pixels `pix` that have enough events in sweep `s`,
+    with their events of that sweep and of the one before (the window), as a
+    recording of its own.
+
+    Each pixel's first event of the window is not solved for: its row would refer to
+    a level set before the window (the baseline, or the carried reference of
+    `reconstruct_sweeps`), which a window cannot model faithfully — in a moving
+    scene it belongs to another spectrum, and the photoreceptor pass has no light
+    history before the window — and on a moving scene (`translate`, per-sweep
+    runs) the misfit of those rows alone drove the factor to the search's bound.
+    That event only sets the reference of the next: the recording starts at its
+    release (a negative clock shift in the kernel's `lead`, :func:`_misfit`).
+
+    Why the sweep before: a sweep's first event refers to the level its pixel's last
+    event of the sweep before left, and the noise model gives that row the variance
+    of a level summed over the earlier sweep's steps; cut at the sweep's start, the
+    first row misfit by ~9 σ per pixel and outweighed the rest of the sweep
+    (development run on `tcs`).
+
+    **Returns:** `(sel, starts, counts, t, sgn, t_ref)` — per-pixel arrays over the
+    whole image (zero outside `sel`), times from the start of the window, and each
+    selected pixel's first (left-out) event's time; or None when fewer than
+    `SPEED_MIN_PIXELS` pixels have enough events."""
+    counts, starts, t_rel, sgn = lists
+    n = counts.size
+    k = counts[pix]
+    first = max(s - 1, 0)
+    sweep_of = [np.floor(t_rel[starts[p] : starts[p] + c] / period_us) for p, c in
+                zip(pix, k)]  # fmt: skip
+    a = np.array([np.searchsorted(v, first, "left") for v in sweep_of], np.int64)
+    m = np.array([np.searchsorted(v, s, "left") for v in sweep_of], np.int64)
+    b = np.array([np.searchsorted(v, s, "right") for v in sweep_of], np.int64)
+    m = np.maximum(m, a + 1)  # (sweep s's events, less the window's first)
+    ok = (b - m) >= SPEED_MIN_EVENTS
+    if ok.sum() < SPEED_MIN_PIXELS:
+        return None
+    pix, a, b = pix[ok], a[ok], b[ok]
+    if pix.size > SPEED_PIXELS:
+        take = np.linspace(0, pix.size - 1, SPEED_PIXELS).round().astype(np.int64)
+        pix, a, b = pix[take], a[take], b[take]
+    t_ref = t_rel[starts[pix] + a] - first * period_us
+    a = a + 1
+    use = b - a
+    sub_counts = np.zeros(n, np.int64)
+    sub_starts = np.zeros(n, np.int64)
+    sub_counts[pix] = use
+    sub_starts[pix] = np.cumsum(use) - use
+    src = np.repeat(starts[pix] + a, use) + (
+        np.arange(int(use.sum())) - np.repeat(np.cumsum(use) - use, use)
+    )
+    t = t_rel[src] - first * period_us
+    return pix, sub_starts, sub_counts, t, sgn[src], t_ref
+
+
+def _misfit(prob, sub, factors, width, offsets_us, period_us, eta, thr_on, thr_off,
+            threads, reject):  # fmt: skip
+    """Total misfit of the subset's answers with its events warped by `factors` (one
+    per sweep of the subset's window); each pixel's clock starts at the release
+    after its left-out first event (also moved)."""
+    sel, starts, counts, t, sgn, t_ref = sub
+    columns = np.repeat(sel % width, counts[sel])
+    tw = warp_times(t, columns, offsets_us, period_us, factors)
+    lead = np.zeros(counts.size)
+    lead[sel] = -(warp_times(t_ref, sel % width, offsets_us, period_us, factors) + eta)
+    fit = np.empty((sel.size, 3))
+    _, _, steps = solve_fused(prob, sel, starts, counts, tw, sgn, lead, thr_on,
+                              thr_off, threads=threads, fit=fit)  # fmt: skip
+    chi = fit[:, 2]
+    bad = (steps < 0) | ~np.isfinite(chi)
+    chi = np.where(bad, reject**2 * counts[sel], chi)
+    return float(chi.sum())
+
+
+def _minimise(fun, step=SPEED_STEP, bound=SPEED_BOUND):
+    """A minimum of `fun` near 1: three points `step` apart, moved downhill until the
+    middle one is lowest, and the vertex of their parabola (within a step of the
+    middle); 1 when the points reach 1 ± `bound` without a minimum (a misfit that
+    keeps falling is another model error, not the mirror). Returns `(argmin,
+    evaluations)`.
+
+    One parabola is enough: on `tcs` (threshold noise 0.01, mirror-speed jitter
+    0.3 %, four draws) a second one through points half as far apart moved the
+    answer by ≤ 0.0001, against a bias of ~+0.0006 that neither removes
+    (`experiments/sweep_speed.py`)."""
+    seen = {}
+
+    def value(f):
+        key = round(f, 12)
+        if key not in seen:
+            seen[key] = fun(f)
+        return seen[key]
+
+    mid = 1.0
+    while True:
+        lo, c, hi = value(mid - step), value(mid), value(mid + step)
+        if c <= lo and c <= hi:
+            break
+        nxt = mid - step if lo < hi else mid + step
+        if abs(nxt - 1.0) > bound:  # no minimum within the bound: not measured
+            return 1.0, len(seen)
+        mid = nxt
+    curv = lo - 2.0 * c + hi
+    if curv <= 0:  # (flat or concave: the middle point)
+        return mid, len(seen)
+    vertex = mid + 0.5 * step * (lo - hi) / curv
+    return min(max(vertex, mid - step), mid + step), len(seen)
