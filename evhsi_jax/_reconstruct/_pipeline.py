@@ -741,13 +741,14 @@ def reconstruct(
       rounding).
     - `threads`: worker threads of the fused backend (default: the usable cores).
     - `sweep_speed`: each sweep's mirror speed relative to the calibration's.
-      `"auto"` (default): measured from the recording, one factor per sweep, when
-      there is a noise model (its σ per row makes the misfit that measures it) and
-      numba (the fused kernel solves the subsets, whatever the backend): a mirror
-      whose speed varies by 0.2 % from sweep to sweep otherwise costs a
-      ColorChecker sweep ~2.5° SAM (:mod:`._sweep_speed`); `"off"`: the nominal
-      speed; or the factors themselves, one per sweep used. The info's
-      `sweep_speed` has the factors used.
+      `"auto"` (default): measured from a recording of one sweep (each sweep of
+      :func:`evhsi_jax.reconstruct_sweeps`) when numba is there (the fused kernel
+      solves the subsets, whatever the backend): a mirror whose speed varies by
+      0.2 % from sweep to sweep otherwise costs a ColorChecker sweep ~1.3° SAM
+      (:mod:`._sweep_speed`); a recording of several sweeps keeps the nominal speed
+      (the estimate was not reliable enough there); `"off"`: the nominal speed; or
+      the factors themselves, one per sweep used. The info's `sweep_speed` has the
+      factors used (None: the nominal speed).
     - `mesh`: a `jax.sharding.Mesh` with a `"pixels"` axis
       (:func:`evhsi_jax.sharding.pixel_mesh`): each chunk's pixels are split over its devices,
       `chunk_pixels` per device, each with the same per-pixel kernel. A one-device
@@ -838,7 +839,11 @@ def reconstruct(
     # A bucket's last chunk is padded to sub × 2^j (small images and buckets pad
     # little); a bucket of fewer than a quarter chunk of pixels joins the next one
     # (one compiled shape less for a little padding).
-    estimate = isinstance(speeds, str) and use_numba() and len(events) > 0
+    # (a recording of one sweep: with several, the estimate was not reliable enough —
+    # _sweep_speed's module docstring)
+    estimate = (
+        isinstance(speeds, str) and sweeps == 1 and use_numba() and len(events) > 0
+    )
     on_device = (
         not fused
         and mesh is None
