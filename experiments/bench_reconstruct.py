@@ -24,7 +24,7 @@ the issue's "equal accuracy" test.
 
 Run: `.venv/bin/python experiments/bench_reconstruct.py [--size 96x144] [--repeats 5]
 [--workers 2] [--sensor ideal|realistic|threshold-noise|background] [--sweeps 1]
-[--stray-z Z] [--reference]
+[--stray-z Z] [--sweep-speed auto|off] [--reference]
 [--out experiments/results/bench_reconstruct.json]`.
 """
 
@@ -61,6 +61,13 @@ def main():
     ap.add_argument(
         "--sweeps", type=int, default=1, help="sweeps of the static recording (1)"
     )
+    ap.add_argument(
+        "--sweep-speed",
+        default="auto",
+        choices=["auto", "off"],
+        help="reconstruct's sweep_speed (auto: each sweep's mirror speed measured "
+        "from a recording of one sweep; off: the rig's)",
+    )
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
     workers = args.workers or len(os.sched_getaffinity(0))
@@ -95,6 +102,7 @@ def main():
     )
     if args.stray_z is not None:
         maps["config"] = ev.reconstruction.ProblemConfig(stray_z=args.stray_z)
+    maps["sweep_speed"] = args.sweep_speed
     ref = None
     if args.reference:
         t0 = time.perf_counter()
@@ -106,6 +114,7 @@ def main():
         "sensor": args.sensor,
         "sweeps": args.sweeps,
         "stray_z": args.stray_z,
+        "sweep_speed": args.sweep_speed,
         "events": len(events),
         "workers": workers,
         "backends": {},

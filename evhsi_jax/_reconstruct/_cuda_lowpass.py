@@ -152,10 +152,20 @@ def make_lowpass_kernel(m: int, nt: int = THREADS, ppb: int = PIXELS_PER_BLOCK):
             i_r, _ = grid_pos(t_us[b, n - 2] + eta, t0, dt, g_last)
             i_end = max(i_end, i_r)
         # Stream heads: event ke at t_ke; release kr at t_{kr−1} + η (the first at 0).
+        # A first reference before the recording (a carried one: t0 < 0) is read a
+        # period later, as `_lowpass_rows` reads it (the band's schedule repeats);
+        # out of the releases' time order, it is a head of its own (wrap).
         ke = 0
         kr = 0
         ie, fe = grid_pos(t_us[b, 0], t0, dt, g_last)
-        ir, fr_ = grid_pos(float32(0.0), t0, dt, g_last)
+        wrap = t0 < float32(0.0)
+        iw, fw = grid_pos(par[0], t0, dt, g_last)
+        if wrap:
+            kr = 1
+            i_end = max(i_end, iw)
+            ir, fr_ = grid_pos(t_us[b, 0] + eta, t0, dt, g_last)
+        else:
+            ir, fr_ = grid_pos(float32(0.0), t0, dt, g_last)
         # The filtered log, kept by every thread (entry 0's recursion, the same
         # operations): the decay's part of the Jacobian needs it at the point before.
         yl = float32(0.0)
@@ -209,6 +219,13 @@ def make_lowpass_kernel(m: int, nt: int = THREADS, ppb: int = PIXELS_PER_BLOCK):
                 kr += 1
                 if kr < n:
                     ir, fr_ = grid_pos(t_us[b, kr - 1] + eta, t0, dt, g_last)
+            if wrap and iw <= j - 1:  # row 0's carried reference
+                for kk in range(nv):
+                    s = t + kk * nt
+                    if s < m1:
+                        c = s - 1 if s >= 1 else m
+                        out[b, 0, c] -= fp[kk] * (float32(1.0) - fw) + fv[kk] * fw
+                wrap = False
         # Each row: its constant, then the event's weight.
         for k in range(n):
             part = float32(0.0)

@@ -1183,21 +1183,8 @@ def _lowpass_point_terms(a, n, first, dt, d_w, log_eps):
 
 @njit(inline=True)
 @no_type_check
-def _lowpass_pre(phase, n):
-    """Grid points the photoreceptor's filter runs before the recording's start: a
-    whole sweep's `n` when the pixel's first reference lies before it (a carried
-    reference, `reconstruct(reference_us=...)`: `phase` < 0), so that the reference
-    is read from the filter's response to the sweep before (under the spectrum
-    being solved for, as the rows without a photoreceptor read the band there) and
-    not clamped to the grid's first point, the baseline; else 0. One sweep: the
-    grid is periodic, so the band lookups of point j stay those of `j % n`."""
-    return n if phase < 0.0 else 0
-
-
-@njit(inline=True)
-@no_type_check
 def _lowpass_queries(tr, k, phase, dt, g_n, eta, fq, lane, qh, apps, a_w, n_app,
-                     pre):  # fmt: skip
+                     n_sweep):  # fmt: skip
     """The queries of :func:`_lowpass_rows` of one pixel (`lane` of its group): event
     i's row of `fq` (zeroed here) gathers F at its time with weight +1 and at its
     reference with weight −1, the difference the event row needs. A query at grid
@@ -1205,10 +1192,17 @@ def _lowpass_queries(tr, k, phase, dt, g_n, eta, fq, lane, qh, apps, a_w, n_app,
     each put into the list of its grid point (`qh[j]`: the point's last
     application, -1 for none; `apps[a]`: the application before it in that list,
     then its lane and row; `a_w[a]`: its signed weight, ±(1 - f) or ±f), numbered
-    from `n_app` on. `pre`: grid points before the recording's start (0, or one
-    sweep's `n` when a reference lies before it: :func:`_lowpass_pre`). Returns the
-    grid points F is needed on (up to the last query's point + 1) and the new count
-    of applications."""
+    from `n_app` on. Returns the grid points F is needed on (up to the last query's
+    point + 1) and the new count of applications.
+
+    A pixel's first reference may lie before the recording (a carried one,
+    `reconstruct(reference_us=...)`: `phase` < 0), off the grid. It is read one
+    period (`n_sweep` points) later, in the recording's first sweep: the band's
+    schedule repeats with the period, so the filter started a sweep before the
+    reference sees the light the grid's own filter, started at the recording, sees
+    a sweep later — the same inputs from the same restart, hence the same value.
+    (Before 2026-11-29 it was clamped to the grid's first point, the baseline; the
+    rows of a carried reference then said what the baseline's say.)"""
     g_end = 1
     for q in range(2 * k):
         i = q // 2
@@ -1219,18 +1213,17 @@ def _lowpass_queries(tr, k, phase, dt, g_n, eta, fq, lane, qh, apps, a_w, n_app,
         else:
             t = 0.0 if i == 0 else tr[i - 1] + eta
             sign = -1.0
-        # (the position on the recording's own grid, its point then moved by `pre`:
-        # the fraction is that of a pixel without the early start to the last bit)
-        pos = min(max((t + phase) / dt, -float(pre)), g_n - 1.0 - pre)
-        j0 = min(np.int64(math.floor(pos)), g_n - 2 - pre)
-        frac = pos - j0
-        j = j0 + pre
+        pos = (t + phase) / dt
+        if pos < 0.0:  # (a carried reference before the recording: see below)
+            pos += n_sweep
+        pos = min(max(pos, 0.0), g_n - 1.0)
+        j = min(np.int64(math.floor(pos)), g_n - 2)
         g_end = max(g_end, j + 2)
         for h in range(2):
             apps[n_app, 0] = qh[j + h]
             apps[n_app, 1] = lane
             apps[n_app, 2] = i
-            a_w[n_app] = sign * (frac if h == 1 else 1.0 - frac)
+            a_w[n_app] = sign * ((pos - j) if h == 1 else 1.0 - (pos - j))
             qh[j + h] = n_app
             n_app += 1
     return g_end, n_app
@@ -1287,14 +1280,13 @@ def _lowpass_rows(
     n = ipar[I_SAMPLES]
     period = par[P_PERIOD]
     dt = period / n
-    pre = _lowpass_pre(phase, n)
-    g_n = ipar[I_SWEEPS] * n + 1 + pre
+    g_n = ipar[I_SWEEPS] * n + 1
     d_w = max(par[P_DW], 1e-6)
     eta = par[P_ETA]
     qh[:g_n] = -1
     # F is needed up to the last query's grid point, g_end - 1
     g_end, _ = _lowpass_queries(tr, k, phase, dt, g_n, eta, fq[0], 0, qh, apps, a_w, 0,
-                                pre)  # fmt: skip
+                                n)  # fmt: skip
     vv[:] = 0.0
     scale = 1.0
     # First what a grid point needs that does not depend on the earlier points, in
@@ -1427,14 +1419,7 @@ def _lane_lowpass_rows(
     m = xs.shape[1]
     n = ipar[I_SAMPLES]
     dt = par[P_PERIOD] / n
-    # The group's grid starts a sweep early if one of its pixels' references lies
-    # before the recording (_lowpass_pre); the others' filters start at the
-    # recording's point (their decay there is set to 0 below), as in _lowpass_rows.
-    pre = 0
-    for lane in range(nl):
-        if todo[lane]:
-            pre = max(pre, _lowpass_pre(phases[lane], n))
-    g_n = ipar[I_SWEEPS] * n + 1 + pre
+    g_n = ipar[I_SWEEPS] * n + 1
     d_w = max(par[P_DW], 1e-6)
     eta = par[P_ETA]
     g_end = 1
@@ -1447,7 +1432,7 @@ def _lane_lowpass_rows(
         if live:
             g_lane, n_app = _lowpass_queries(
                 trs[lane], ks[lane], phases[lane], dt, g_n, eta, fqs[lane], lane, qh,
-                apps, a_w, n_app, pre,
+                apps, a_w, n_app, n,
             )  # fmt: skip
             g_end = max(g_end, g_lane)
     # The intensity at x0 (each lane's four partial sums, as _lowpass_rows').
@@ -1485,10 +1470,6 @@ def _lane_lowpass_rows(
         lpl[1, e + _u(3)] = max(base_rel + ((a3 + b3) + (c3 + d3)), 0.0)
         jn = jn + 1 if jn + 1 < n else 0
     _lowpass_point_terms(lpl, 4 * g_end, 4, dt, d_w, par[P_LOG_EPS])
-    if pre > 0:  # the lanes whose filters start at the recording: a restart there
-        for lane in range(4):
-            if _lowpass_pre(phases[lane], n) == 0 and pre < g_end:
-                lpl[1, 4 * pre + lane] = 0.0
     # The recursion, four lanes at a time (st[0:4]: each lane's running scale S,
     # st[4:8]: its weight of the band at this point).
     for c in range(4 * (m + 1)):
@@ -1803,8 +1784,7 @@ def solve_pixels(
     lowpass = noisy_model and d_w > 0.0 and ipar[I_LOWPASS] > 0
     lp_passes = ipar[I_LOWPASS] if lowpass else 0
     n_query = 2 * kmax if lowpass else 1  # per pixel: each event's time, its reference
-    # (one sweep more: a reference before the recording, _lowpass_pre)
-    n_grid = (sweeps + 1) * ipar[I_SAMPLES] + 1 if lowpass else 1
+    n_grid = sweeps * ipar[I_SAMPLES] + 1 if lowpass else 1
     lp_f = np.zeros((4, n_grid))
     # The band on one sweep's time grid of the column last used (_column_grid).
     # (a row holds its span only: ~18 of M values, a quarter of the memory to cache)

@@ -571,7 +571,13 @@ def _lowpass_rows(rig, a_at, x0, d_w, t_us, step, t0_phase_us, sweeps):
     filt = jnp.concatenate([y, filtered(w[:, None] * ag)], axis=1)
 
     def at(t):
-        pos = jnp.clip((t + t0_phase_us) / dt, 0.0, g_n - 1.0)
+        # A carried reference before the recording (t0_phase_us < 0) is read one
+        # period later: the band's schedule repeats, so a filter started a sweep
+        # before it sees what this one, started at the recording, sees a sweep later
+        # (`_fused_jit._lowpass_queries`; clamped to the baseline before 2026-11-29).
+        pos = (t + t0_phase_us) / dt
+        pos = jnp.where(pos < 0.0, pos + n, pos)
+        pos = jnp.clip(pos, 0.0, g_n - 1.0)
         i = jnp.clip(jnp.floor(pos), 0, g_n - 2)
         f = (pos - i)[:, None]
         i = i.astype(jnp.int32)

@@ -6,22 +6,31 @@ faster or slower by a factor $f_s$ in sweep $s$: the band centre is
 $λ_0 + f_s βω(t + τ_x)$ at local time $t$ instead of $λ_0 + βω(t + τ_x)$. The
 calibration fits one β to all the sweeps of its chart, so it cannot know the factor
 of a sweep recorded later; left alone, a factor of 1.002 (the `realistic` preset's
-σ) misplaces the band by up to ~1 nm at the red end and costs a ColorChecker sweep
-~2.5° SAM (README, Real sensors).
+σ) misplaces the band by ~1 nm at the red end, and one sweep of the ColorChecker
+loses ~1.3° SAM at 0.2 % jitter, ~4.7° at 0.5 % (README, Real sensors, "The mirror's
+speed in each sweep").
 
 Every pixel of a sweep shares its factor, so the recording measures it. An event at
 local time $t$ of a sweep with factor $f$ is where the nominal sweep has its band at
 $t' = f (t + τ_x) - τ_x$ (:func:`warp_times`); with the right factor the events of
 all pixels fit the model best. :func:`estimate_speeds` solves a subset of the
-sweep's pixels (`SPEED_PIXELS`, spread over the image, each with its events of that
-sweep alone) for a few factors and takes the minimum of a parabola through their
-total misfit — the sum over pixels of the fused kernel's capped sum of squared
-standardised residuals, so it needs the noise model that gives each row its σ.
+sweep's pixels (`SPEED_PIXELS`, spread over the image) for three factors and takes
+the vertex of the parabola through their total misfit — the sum over pixels of the
+fused kernel's capped sum of squared standardised residuals (a sensor without a
+noise model is weighted as with `IDEAL_NOISE`). Each pixel's first event of the
+window only sets the reference of the next (:func:`_sweep_subset`). The estimate has
+a bias that depends on the scene (+0.0002 to +0.0007 on `tcs`), common to the sweeps
+of a recording; the common deviation is shrunk by it (:func:`shrink_common`), so a
+mirror without jitter keeps factor 1.
 
-On the training scene (`tcs`, 48×72, mirror-speed jitter 0.2 % alone, true
-thresholds, three draws) the misfit's minimum lay within 0.0003 of the true factor,
-and the SAM against the truth has its minimum at the same place
-(`experiments/sweep_speed.py`).
+`reconstruct(sweep_speed="auto")` measures recordings of ONE sweep — a single capture,
+or each sweep of `reconstruct_sweeps`. For several sweeps this module estimates each
+in a window with the sweep before (its factor fixed at its estimate), which on the
+training scene with the true rig found the sweeps' factors to ~0.0004
+(`experiments/sweep_speed.py --sweeps 4`), but with a rig calibrated from a gray
+chart it took up the calibration's errors through the rows that link the two sweeps
+(`tcs`, background 0.3 Hz, no mirror jitter, 4 sweeps: 0.65° → 1.38°; windows of one
+sweep each: 3.45°), so `auto` leaves those at the calibration's speed.
 """
 
 from __future__ import annotations
@@ -132,15 +141,16 @@ def estimate_speeds(rig, table, cfg, spec, width, offsets_us, sweeps, noise, lis
     return SpeedEstimate(shrink_common(factors, pixels > 0), pixels, evaluations)
 
 
-def shrink_common(factors, measured, bias=SPEED_BIAS):
+def shrink_common(factors, measured, bias=None):
     """The factors with their common part shrunk towards 1: the mean deviation `d`
-    of the measured sweeps becomes `d (1 - bias² / d²)` (0 when |d| ≤ `bias`), the
+    of the measured sweeps becomes `d (1 - bias² / d²)` (0 when |d| ≤ `bias`; default `SPEED_BIAS`), the
     sweeps' deviations from their mean are kept. The estimate has a bias that
     depends on the scene (model errors; ~+0.0002 to +0.0007 on `tcs`), the same for
     every sweep of a recording: their differences are measured well, their common
     level to about that bias. Without the shrinkage a sensor without mirror jitter
     took a factor of ~1.0005 and lost ~0.1–0.3° SAM (development runs); with it a
     deviation well above the bias is kept nearly whole (0.002: 88 %)."""
+    bias = SPEED_BIAS if bias is None else bias
     factors = np.asarray(factors, np.float64).copy()
     if not np.any(measured):
         return factors

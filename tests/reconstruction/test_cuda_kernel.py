@@ -347,7 +347,10 @@ pix = np.where(bt.pixel >= 0, bt.pixel, 0)
 offs = np.asarray(rig.column_offsets(w), np.float64)
 thr_on = np.linspace(0.9, 1.1, h * w) * float(rig.threshold_on)
 thr_off = np.linspace(1.1, 0.9, h * w) * float(rig.threshold_off)
-d = np.where(np.arange(pix.size) == 1, 37.5, 0.0)  # a carried reference: clock shift
+# A carried reference: a clock shift that puts pixel 1's first reference 13 ms before
+# the recording, in the sweep before where the band lights the pixel (read a period
+# later on the grid, as the fused kernel and JAX read it; not the baseline).
+d = np.where(np.arange(pix.size) == 1, 13000.0, 0.0)
 px = pl._device_pixels(bt.t_us, bt.polarity, bt.mask, pix, bt.column, d, offs, thr_on,
                        thr_off, np.float32)
 noise_j = jnp.asarray(noise, jnp.float32)

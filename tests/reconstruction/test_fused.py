@@ -98,10 +98,11 @@ def test_speed_factors_move_the_times_alike(captures):
 
 def test_carried_reference_through_the_photoreceptor():
     """With the photoreceptor pass, a sweep's first event refers to the level its
-    pixel's last event of the sweep before left: the filter runs through that sweep
-    (under the spectrum solved for) instead of reading the baseline at the grid's
-    first point. Per-sweep recordings of a noisy sensor (the pass with log-unit
-    rows) then beat the same sweeps taken from the baseline, as on an ideal sensor."""
+    pixel's last event of the sweep before left (the filter's response there under
+    the spectrum solved for, read a period later on the recording's grid) instead of
+    the baseline at the grid's first point. Per-sweep recordings of a noisy sensor
+    (the pass with log-unit rows) then beat the same sweeps taken from the baseline,
+    as on an ideal sensor; the JAX path reads it alike."""
     rig = ev.Rig.from_dict({"threshold_noise": 0.01})
     h, w = 12, 16
     scene = ev.load_scene("tcs", (h, w))
@@ -120,6 +121,12 @@ def test_carried_reference_through_the_photoreceptor():
         plain = ev.reconstruct(win, rig, t_start_us=t0, **kw)
         gain.append(ev.evaluate(plain, truth)["sam_deg"]
                     - ev.evaluate(carried, truth)["sam_deg"])  # fmt: skip
+        if s == 1:  # the JAX path (float64) reads the carried reference alike
+            with jax.enable_x64(True):
+                jx = ev.reconstruct(win, rig.astype(np.float64), t_start_us=t0,
+                                    reference_us=(last + eta).reshape(h, w),
+                                    **dict(kw, backend="jax"))  # fmt: skip
+            assert ev.metrics.sam_map_deg(carried, jx).max() < 0.05
         np.fmax.at(last, win.y.astype(np.int64) * w + win.x, win.t_us + 0.5)
     assert gain[0] == 0.0  # (no earlier events: the same recording)
     assert min(gain[1:]) > 0.4, gain  # (0.69° and 0.58°; 0 before the fix)
@@ -355,8 +362,7 @@ def test_lane_photoreceptor_rows_equal_one_pixel_bit_for_bit():
     photoreceptor model's event rows of `_lowpass_rows` to the last bit, for a group
     of three with one pixel left out (`todo`), pixels of different event counts and
     lags, over two sweeps, and with one pixel whose reference lies before the
-    recording (its filter starts a sweep early); the pixel left out keeps its rows
-    untouched."""
+    recording; the pixel left out keeps its rows untouched."""
     from evhsi_jax._reconstruct import _fused_jit as jit
 
     rig, w, sweeps = ev.Rig(sensor="realistic"), 8, 2
@@ -388,10 +394,10 @@ def test_lane_photoreceptor_rows_equal_one_pixel_bit_for_bit():
         trs[p, : ks[p]] = np.sort(rng.uniform(0.0, sweeps * period * 0.95, ks[p]))
         steps[p, : ks[p]] = rng.choice([-0.25, 0.2], ks[p])
         wl[p, : ks[p]] = rng.uniform(0.3, 1.0, ks[p])
-    # Pixel 0's first reference lies before the recording (a carried one): its
-    # filter, and so the group's grid, starts a sweep early; pixel 2's does not.
+    # Pixel 0's first reference lies before the recording (a carried one: read a
+    # period later); pixel 2's does not.
     phases = np.array([-30.0, 12.0, 25.0, -5.0])
-    nbuf, n_grid = 2 * kmax, (sweeps + 1) * n + 1
+    nbuf, n_grid = 2 * kmax, sweeps * n + 1
 
     def rows():
         return (np.full((g, kmax, m), 7.0), np.zeros((g, kmax)),
