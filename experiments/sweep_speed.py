@@ -57,7 +57,7 @@ def estimate(events, rig, info, sweeps):
     offsets = np.asarray(rig.column_offsets(w), np.float64)
     return _sweep_speed.estimate_speeds(
         rig, _pipeline.channel_table(rig), cfg, _pipeline.solver_spec("auto"), w,
-        offsets, sweeps, noise, pixel_lists(events, 0),
+        offsets, sweeps, noise, pixel_lists(events, 0), np.zeros(w * events.height),
         info.threshold_on.reshape(-1).astype(np.float64),
         info.threshold_off.reshape(-1).astype(np.float64), float(rig.period_us),
     ).factors  # fmt: skip

@@ -880,8 +880,8 @@ def reconstruct(
             counts = lists[0]
     if estimate:
         factors = _estimate_speeds(
-            rig, cfg, spec, w, offsets_all, sweeps, noise, est_lists, thr_on, thr_off,
-            period, threads,
+            rig, cfg, spec, w, offsets_all, sweeps, noise, est_lists, lead, thr_on,
+            thr_off, period, threads,
         ).factors  # fmt: skip
     if factors is not None and not on_device:
         lists = warp_lists(lists, w, offsets_all, period, factors)
@@ -1760,7 +1760,7 @@ def _candidate_lists(events, keep, counts, sweeps, t_start_us):
     return pixel_lists(events.take(sel), t_start_us)
 
 
-def _estimate_speeds(rig, cfg, spec, w, offsets, sweeps, noise, lists, thr_on,
+def _estimate_speeds(rig, cfg, spec, w, offsets, sweeps, noise, lists, lead, thr_on,
                      thr_off, period, threads):  # fmt: skip
     """:func:`._sweep_speed.estimate_speeds` with a setting the fused kernel runs
     (the active-set solver and the linear lookup, whatever the call's)."""
@@ -1770,8 +1770,8 @@ def _estimate_speeds(rig, cfg, spec, w, offsets, sweeps, noise, lists, thr_on,
     if noise is None:  # (an ideal sensor: rows weighted as for a small noise)
         noise = IDEAL_NOISE
     return estimate_speeds(
-        rig, channel_table(rig), cfg, spec, w, offsets, sweeps, noise, lists, thr_on,
-        thr_off, period, threads=threads,
+        rig, channel_table(rig), cfg, spec, w, offsets, sweeps, noise, lists, lead,
+        thr_on, thr_off, period, threads=threads,
     )  # fmt: skip
 
 

@@ -17,9 +17,13 @@ all pixels fit the model best. :func:`estimate_speeds` solves a subset of the
 sweep's pixels (`SPEED_PIXELS`, spread over the image) for three factors and takes
 the vertex of the parabola through their total misfit — the sum over pixels of the
 fused kernel's capped sum of squared standardised residuals (a sensor without a
-noise model is weighted as with `IDEAL_NOISE`). Each pixel's first event of the
-window only sets the reference of the next (:func:`_sweep_subset`). The estimate has
-a bias that depends on the scene (+0.0002 to +0.0007 on `tcs`), common to the sweeps
+noise model is weighted as with `IDEAL_NOISE`); pixels that fit far worse than the
+others at the nominal speed (a stray event, a scene that changed since a carried
+reference) are left out first (:func:`_typical`). Each pixel keeps its first event
+and its reference: leaving the first event out as a mere reference (tried) made the
+photoreceptor's delay shift, which reads the level from the steps since the first,
+see a level one step low, and a 10 kHz photoreceptor without mirror jitter took a
+factor of 0.998 (`tcs`, calibrated). The estimate has a bias that depends on the scene (+0.0002 to +0.0007 on `tcs`), common to the sweeps
 of a recording; the common deviation is shrunk by it (:func:`shrink_common`), so a
 mirror without jitter keeps factor 1.
 
@@ -104,14 +108,17 @@ class SpeedEstimate:
 
 
 def estimate_speeds(rig, table, cfg, spec, width, offsets_us, sweeps, noise, lists,
-                    thr_on, thr_off, period_us, *, threads=None) -> SpeedEstimate:  # fmt: skip
+                    lead, thr_on, thr_off, period_us, *,
+                    threads=None) -> SpeedEstimate:  # fmt: skip
     """Each sweep's speed factor from the recording (module docstring).
 
-    `lists`: the recording's event lists (:func:`._pixels.pixel_lists`, not warped;
-    no reference before the recording is needed: :func:`_sweep_subset`), `noise`: the
-    solve's noise model (required: the misfit is in units of each row's σ). The
-    subsets are solved by the fused kernel with `cfg` but without the robust
-    reweighting (its weights would hide what the factor changes)."""
+    `lists`: the recording's event lists (:func:`._pixels.pixel_lists`, not warped),
+    `lead`: each pixel's carried reference (`_pipeline._reference_lead_us`), `noise`:
+    the solve's noise model (the misfit is in units of each row's σ). The subsets
+    are solved by the fused kernel with `cfg` but without the robust reweighting
+    (its weights would hide what the factor changes). Pixels that fit far worse than
+    the subset's typical pixel at the nominal speed (:func:`_typical`: a stray event,
+    a pixel whose scene changed since its carried reference) are left out first."""
     plain = dataclasses.replace(cfg, robust_steps=0)
     probs = [
         FusedProblem(rig, table, plain, spec, width, offsets_us, n, noise)
@@ -124,21 +131,39 @@ def estimate_speeds(rig, table, cfg, spec, width, offsets_us, sweeps, noise, lis
     evaluations = 0
     pool = candidates(counts, sweeps)
     for s in range(sweeps):
-        sub = _sweep_subset(lists, pool, s, period_us, eta, width, offsets_us,
+        sub = _sweep_subset(lists, pool, s, period_us, eta, lead, width, offsets_us,
                             factors)  # fmt: skip
         if sub is None:
             continue
-        pixels[s] = sub[0].size
         before = factors[max(s - 1, 0) : s]  # (the sweep before, estimated)
 
-        def misfit(f, sub=sub, before=before):
+        def misfit(f, sub=sub, before=before, per_pixel=False):
             return _misfit(probs[before.size], sub, np.append(before, f), width,
-                           offsets_us, period_us, eta, thr_on, thr_off, threads,
-                           cfg.robust_reject)  # fmt: skip
+                           offsets_us, period_us, thr_on, thr_off, threads,
+                           cfg.robust_reject, per_pixel)  # fmt: skip
 
-        factors[s], n_eval = _minimise(misfit)
-        evaluations += n_eval
+        sub = _typical(sub, misfit(1.0, per_pixel=True))
+        pixels[s] = sub[0].size
+        factors[s], n_eval = _minimise(lambda f, sub=sub: misfit(f, sub))
+        evaluations += n_eval + 1
     return SpeedEstimate(shrink_common(factors, pixels > 0), pixels, evaluations)
+
+
+#: A subset's pixel whose misfit per event row at the nominal speed exceeds this many
+#: times the subset's median is left out of the estimate (:func:`_typical`).
+SPEED_OUTLIER = 5.0
+
+
+def _typical(sub, chi):
+    """The subset without its pixels whose misfit per row `chi / rows` is more than
+    `SPEED_OUTLIER` × the median: a mirror's speed moves every pixel's fit, a stray
+    event or a changed scene a few. On the held-out ColorChecker (development run)
+    the background's strays at 1 Hz and 3 Hz had moved the estimate by
+    ~0.001–0.002."""
+    sel, starts, counts, t, sgn, lead = sub
+    per_row = chi / np.maximum(counts[sel], 1)
+    keep = per_row <= SPEED_OUTLIER * np.median(per_row)
+    return sel[keep], starts, counts, t, sgn, lead
 
 
 def shrink_common(factors, measured, bias=None):
@@ -172,30 +197,19 @@ def candidates(counts, sweeps):
     return pix
 
 
-def _sweep_subset(lists, pix, s, period_us, eta, width, offsets_us, factors):
+def _sweep_subset(lists, pix, s, period_us, eta, lead, width, offsets_us, factors):
     """Up to `SPEED_PIXELS` of the pixels `pix` that have enough events in sweep `s`,
     with their events of that sweep and of the one before (the window), as a
-    recording of its own.
-
-    Each pixel's first event of the window is not solved for: its row would refer to
-    a level set before the window (the baseline, or the carried reference of
-    `reconstruct_sweeps`), which a window cannot model faithfully — in a moving
-    scene it belongs to another spectrum, and the photoreceptor pass has no light
-    history before the window — and on a moving scene (`translate`, per-sweep
-    runs) the misfit of those rows alone drove the factor to the search's bound.
-    That event only sets the reference of the next: the recording starts at its
-    release (a negative clock shift in the kernel's `lead`, :func:`_misfit`).
-
-    Why the sweep before: a sweep's first event refers to the level its pixel's last
-    event of the sweep before left, and the noise model gives that row the variance
-    of a level summed over the earlier sweep's steps; cut at the sweep's start, the
-    first row misfit by ~9 σ per pixel and outweighed the rest of the sweep
-    (development run on `tcs`).
-
-    **Returns:** `(sel, starts, counts, t, sgn, t_ref)` — per-pixel arrays over the
-    whole image (zero outside `sel`), times from the start of the window, and each
-    selected pixel's first (left-out) event's time; or None when fewer than
-    `SPEED_MIN_PIXELS` pixels have enough events."""
+    recording of its own: `(sel, starts, counts, t, sgn, lead)`, per-pixel arrays
+    over the whole image (zero outside `sel`), times from the window's start. The
+    first reference of a window from sweep 0 is the recording's (`lead`: the
+    baseline, or `reconstruct_sweeps`' carried reference); of a later window, the
+    release after the pixel's last event before it, its time moved by its sweep's
+    factor (`factors`, estimated already). Why the sweep before: a sweep's first
+    event refers to the level its pixel's last event of the sweep before left, and
+    the noise model gives that row the variance of a level summed over the earlier
+    sweep's steps; cut at the sweep's start, that row would misfit. None when fewer
+    than `SPEED_MIN_PIXELS` pixels have enough events."""
     counts, starts, t_rel, sgn = lists
     n = counts.size
     k = counts[pix]
@@ -205,7 +219,6 @@ def _sweep_subset(lists, pix, s, period_us, eta, width, offsets_us, factors):
     a = np.array([np.searchsorted(v, first, "left") for v in sweep_of], np.int64)
     m = np.array([np.searchsorted(v, s, "left") for v in sweep_of], np.int64)
     b = np.array([np.searchsorted(v, s, "right") for v in sweep_of], np.int64)
-    m = np.maximum(m, a + 1)  # (sweep s's events, less the window's first)
     ok = (b - m) >= SPEED_MIN_EVENTS
     if ok.sum() < SPEED_MIN_PIXELS:
         return None
@@ -213,8 +226,6 @@ def _sweep_subset(lists, pix, s, period_us, eta, width, offsets_us, factors):
     if pix.size > SPEED_PIXELS:
         take = np.linspace(0, pix.size - 1, SPEED_PIXELS).round().astype(np.int64)
         pix, a, b = pix[take], a[take], b[take]
-    t_ref = t_rel[starts[pix] + a] - first * period_us
-    a = a + 1
     use = b - a
     sub_counts = np.zeros(n, np.int64)
     sub_starts = np.zeros(n, np.int64)
@@ -224,26 +235,30 @@ def _sweep_subset(lists, pix, s, period_us, eta, width, offsets_us, factors):
         np.arange(int(use.sum())) - np.repeat(np.cumsum(use) - use, use)
     )
     t = t_rel[src] - first * period_us
-    return pix, sub_starts, sub_counts, t, sgn[src], t_ref
+    sub_lead = np.array(lead, np.float64, copy=True)
+    before = a > 0
+    if first > 0 and before.any():
+        prev = t_rel[starts[pix[before]] + a[before] - 1]
+        last = warp_times(prev, pix[before] % width, offsets_us, period_us, factors) + eta
+        sub_lead[pix[before]] = np.mod(np.maximum(first * period_us - last, 0.0),
+                                       period_us)  # fmt: skip
+    return pix, sub_starts, sub_counts, t, sgn[src], sub_lead
 
 
-def _misfit(prob, sub, factors, width, offsets_us, period_us, eta, thr_on, thr_off,
-            threads, reject):  # fmt: skip
+def _misfit(prob, sub, factors, width, offsets_us, period_us, thr_on, thr_off,
+            threads, reject, per_pixel=False):  # fmt: skip
     """Total misfit of the subset's answers with its events warped by `factors` (one
-    per sweep of the subset's window); each pixel's clock starts at the release
-    after its left-out first event (also moved)."""
-    sel, starts, counts, t, sgn, t_ref = sub
-    columns = np.repeat(sel % width, counts[sel])
+    per sweep of the subset's window); per pixel with `per_pixel`."""
+    sel, starts, counts, t, sgn, lead = sub
+    columns = np.repeat(np.arange(counts.size) % width, counts)
     tw = warp_times(t, columns, offsets_us, period_us, factors)
-    lead = np.zeros(counts.size)
-    lead[sel] = -(warp_times(t_ref, sel % width, offsets_us, period_us, factors) + eta)
     fit = np.empty((sel.size, 3))
     _, _, steps = solve_fused(prob, sel, starts, counts, tw, sgn, lead, thr_on,
                               thr_off, threads=threads, fit=fit)  # fmt: skip
     chi = fit[:, 2]
     bad = (steps < 0) | ~np.isfinite(chi)
     chi = np.where(bad, reject**2 * counts[sel], chi)
-    return float(chi.sum())
+    return chi if per_pixel else float(chi.sum())
 
 
 def _minimise(fun, step=SPEED_STEP, bound=SPEED_BOUND):
