@@ -23,9 +23,10 @@ reference) are left out first (:func:`_typical`). Each pixel keeps its first eve
 and its reference: leaving the first event out as a mere reference (tried) made the
 photoreceptor's delay shift, which reads the level from the steps since the first,
 see a level one step low, and a 10 kHz photoreceptor without mirror jitter took a
-factor of 0.998 (`tcs`, calibrated). The estimate has a bias that depends on the scene (+0.0002 to +0.0007 on `tcs`), common to the sweeps
-of a recording; the common deviation is shrunk by it (:func:`shrink_common`), so a
-mirror without jitter keeps factor 1.
+factor of 0.998 (`tcs`, calibrated). The estimate has a bias that depends on the
+scene (+0.0002 to +0.0007 on `tcs`), common to the sweeps of a recording; the common
+deviation is shrunk by it (:func:`shrink_common`), so a mirror without jitter keeps
+factor 1.
 
 `reconstruct(sweep_speed="auto")` measures recordings of ONE sweep — a single capture,
 or each sweep of `reconstruct_sweeps`. For several sweeps this module estimates each
