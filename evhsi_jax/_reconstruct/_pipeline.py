@@ -836,14 +836,14 @@ def reconstruct(
         events, rig, t_start_us, noise, sweeps, cal.hot_pixels
     )  # (screen_events; the kept events taken below where needed)
     noise = noise_solve
-    # A bucket's last chunk is padded to sub × 2^j (small images and buckets pad
-    # little); a bucket of fewer than a quarter chunk of pixels joins the next one
-    # (one compiled shape less for a little padding).
-    # (a recording of one sweep: with several, the estimate was not reliable enough —
-    # _sweep_speed's module docstring)
+    # The mirror's speed is measured in a recording of one sweep (with several the
+    # estimate was not reliable enough: _sweep_speed's module docstring).
     estimate = (
         isinstance(speeds, str) and sweeps == 1 and use_numba() and len(events) > 0
     )
+    # A bucket's last chunk is padded to sub × 2^j (small images and buckets pad
+    # little); a bucket of fewer than a quarter chunk of pixels joins the next one
+    # (one compiled shape less for a little padding).
     on_device = (
         not fused
         and mesh is None
