@@ -14,6 +14,7 @@ from ._reconstruct import pixel_system as pixel_system
 from ._reconstruct import reconstruct as reconstruct
 from ._reconstruct import solver_spec as solver_spec
 from ._reconstruct import spectral_prior_matrix as spectral_prior_matrix
+from ._reconstruct import warp_times as warp_times
 
 __all__ = [
     "reconstruct",
@@ -28,4 +29,5 @@ __all__ = [
     "deblur_cube",
     "DEFAULT_WIENER_REG",
     "batch_sizes",
+    "warp_times",
 ]
