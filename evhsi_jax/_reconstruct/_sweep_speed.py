@@ -44,6 +44,7 @@ import dataclasses
 
 import numpy as np
 
+from .._base import use_numba
 from ._fused import FusedProblem, solve_fused
 
 #: Pixels solved per sweep and candidate factor (the most; fewer in small images).
@@ -95,6 +96,17 @@ def warp_lists(lists, width, offsets_us, period_us, factors):
     if np.all(np.asarray(factors) == 1.0):
         return lists
     counts, starts, t_rel, sgn = lists
+    if use_numba():  # (one pass: _group_jit.warp_pixel_times)
+        from ._group_jit import warp_pixel_times
+
+        out = np.empty_like(t_rel, np.float64)
+        warp_pixel_times(
+            np.asarray(t_rel, np.float64), starts.astype(np.int64),
+            counts.astype(np.int64), np.int64(width),
+            np.asarray(offsets_us, np.float64), float(period_us),
+            np.asarray(factors, np.float64), out,
+        )  # fmt: skip
+        return counts, starts, out, sgn
     columns = np.repeat(np.arange(counts.size) % width, counts)
     return counts, starts, warp_times(t_rel, columns, offsets_us, period_us, factors), sgn
 

@@ -51,6 +51,25 @@ def test_warp_times_moves_the_band_to_the_nominal_sweep():
     assert np.all(np.diff(moved) >= 0)
 
 
+def test_warp_lists_numba_is_numpy():
+    """The pixel lists' one-pass numba warp gives NumPy's values to the bit."""
+    from evhsi_jax._base._numba import use_backend
+
+    rng = np.random.default_rng(1)
+    w, period = 7, 1000.0
+    counts = rng.integers(0, 9, 5 * w)
+    starts = np.cumsum(counts) - counts
+    t = np.concatenate([np.sort(rng.uniform(0, 2 * period, c)) for c in counts])
+    lists = (counts, starts, t, np.ones(t.size, np.int8))
+    offsets = -np.linspace(0.0, 150.0, w)
+    got = _sweep_speed.warp_lists(lists, w, offsets, period, [1.01, 0.995])[2]
+    with use_backend("numpy"):
+        want = _sweep_speed.warp_lists(lists, w, offsets, period, [1.01, 0.995])[2]
+    np.testing.assert_array_equal(got, want)
+    assert not np.array_equal(got, t)
+    assert _sweep_speed.warp_lists(lists, w, offsets, period, [1.0, 1.0]) is lists
+
+
 def _sweep(events, info, cal, s):
     """Sweep `s` of the recording, as a recording of its own."""
     period = float(cal.rig.period_us)
