@@ -48,8 +48,9 @@ from .._base import use_numba
 from ._fused import FusedProblem, solve_fused
 
 #: Pixels solved per sweep and candidate factor (the most; fewer in small images).
-#: 256, 512 and 1024 gave the same estimates to ~0.0002 on `tcs` (four draws), whose
-#: error is a bias of ~+0.0006 (`experiments/sweep_speed.py`).
+#: 256, 512 and 1024 gave the same estimates to ~0.0002 on `tcs` (threshold noise
+#: 0.01, 0.3 % jitter, four draws; a development run of an earlier version), whose
+#: error was a bias of ~+0.0006.
 SPEED_PIXELS = 512
 #: A pixel takes part with at least this many events in the sweep.
 SPEED_MIN_EVENTS = 8
@@ -135,7 +136,7 @@ def estimate_speeds(rig, table, cfg, spec, width, offsets_us, sweeps, noise, lis
     plain = dataclasses.replace(cfg, robust_steps=0)
     probs = [
         FusedProblem(rig, table, plain, spec, width, offsets_us, n, noise)
-        for n in (1, 2)
+        for n in range(1, min(sweeps, 2) + 1)
     ]  # (one sweep, and a sweep with the one before)
     eta = float(rig.refractory_us)
     counts = lists[0]
@@ -170,9 +171,10 @@ SPEED_OUTLIER = 5.0
 def _typical(sub, chi):
     """The subset without its pixels whose misfit per row `chi / rows` is more than
     `SPEED_OUTLIER` × the median: a mirror's speed moves every pixel's fit, a stray
-    event or a changed scene a few. On the held-out ColorChecker (development run)
-    the background's strays at 1 Hz and 3 Hz had moved the estimate by
-    ~0.001–0.002."""
+    event or a changed scene a few. It came with the pixels' first events kept
+    (module docstring), after a held-out run of the version before had lost 1.3–1.8°
+    on background activity of 1 and 3 Hz (1.92° → 3.26°, 2.55° → 4.31° from one
+    sweep); which of the two mended those rows was not measured apart."""
     sel, starts, counts, t, sgn, lead = sub
     per_row = chi / np.maximum(counts[sel], 1)
     keep = per_row <= SPEED_OUTLIER * np.median(per_row)
@@ -282,9 +284,9 @@ def _minimise(fun, step=SPEED_STEP, bound=SPEED_BOUND):
     evaluations)`.
 
     One parabola is enough: on `tcs` (threshold noise 0.01, mirror-speed jitter
-    0.3 %, four draws) a second one through points half as far apart moved the
-    answer by ≤ 0.0001, against a bias of ~+0.0006 that neither removes
-    (`experiments/sweep_speed.py`)."""
+    0.3 %, four draws; a development run of an earlier version) a second one through
+    points half as far apart moved the answer by ≤ 0.0001, against a bias of
+    ~+0.0006 that neither removes."""
     seen = {}
 
     def value(f):
