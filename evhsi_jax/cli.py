@@ -518,8 +518,19 @@ def _reconstruct_per_sweep(args, config):
                 if res.stray_events
                 else ""
             )
+            + _speed_range_note(res.index["sweeps"])
         )
     return 0
+
+
+def _speed_range_note(entries) -> str:
+    """The per-sweep summary's words on the sweeps' mirror-speed factors (their
+    index entries' `sweep_speed`; none: nothing)."""
+    f = [e["sweep_speed"] for e in entries if "sweep_speed" in e]
+    if not f:
+        return ""
+    lo, hi = 100 * (min(f) - 1), 100 * (max(f) - 1)
+    return f"; mirror speed per sweep {lo:+.2f} to {hi:+.2f} %"
 
 
 def cmd_evaluate(args):

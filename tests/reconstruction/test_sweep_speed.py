@@ -207,9 +207,20 @@ def test_cli_sweep_speed(jittery, tmp_path, capsys):
         assert ("mirror speed per sweep" in printed) == (inf.sweep_speed is not None)
         if opt is not None and opt != "off":
             assert "+0.40, -0.30 %" in printed
+    # Per sweep: each sweep measured, the summary gives their range.
+    capsys.readouterr()
+    assert main(base + ["--out", str(tmp_path / "frames"), "--per-sweep"]) == 0
+    printed = capsys.readouterr().out
+    got = [e["sweep_speed"] for e in ev.video.load_sweep_index(tmp_path / "frames")["sweeps"]]
+    lo, hi = 100 * (min(got) - 1), 100 * (max(got) - 1)
+    assert f"mirror speed per sweep {lo:+.2f} to {hi:+.2f} %" in printed, printed
+    assert lo < -0.1 and hi > 0.1  # (this recording's sweeps: -0.30 % and +0.21 %)
     for bad, words in (("quick", "--sweep-speed must be auto, off or factors"),
-                       ("1.0", "has 1 factor(s)")):  # fmt: skip
-        code = main(base + ["--out", str(tmp_path / "bad.npz"), "--sweep-speed", bad])
+                       ("1.0", "has 1 factor(s)"),
+                       ("1.0,1.0", "with --per-sweep, --sweep-speed is auto or off")):  # fmt: skip
+        extra = ["--per-sweep"] if "per-sweep" in words else []
+        code = main(base + ["--out", str(tmp_path / "bad.npz"), "--sweep-speed", bad]
+                    + extra)  # fmt: skip
         err = capsys.readouterr().err
         assert code == 2 and len(err.strip().splitlines()) == 1, err
         assert words in err
