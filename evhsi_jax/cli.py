@@ -237,7 +237,7 @@ def cmd_reconstruct(args):
     config = _problem_config(args)  # its options checked before any work
     speed = _sweep_speed(args)
     if args.per_sweep:
-        return _reconstruct_per_sweep(args, config)
+        return _reconstruct_per_sweep(args, config, speed)
     if args.max_sweeps is not None or args.restart or args.follow:
         raise ValueError(
             "--max-sweeps, --restart and --follow apply only with --per-sweep"
@@ -415,7 +415,7 @@ def _problem_config(args):
     return ProblemConfig(**kw)
 
 
-def _run_sweeps(args, cal, out, roi, stop, config):
+def _run_sweeps(args, cal, out, roi, stop, config, speed):
     from ._video import reconstruct_sweeps
 
     return reconstruct_sweeps(
@@ -439,11 +439,11 @@ def _run_sweeps(args, cal, out, roi, stop, config):
         deblur=_DEBLUR[args.deblur],
         backend=args.backend,
         threads=args.threads,
-        sweep_speed=args.sweep_speed.strip(),
+        sweep_speed=speed,
     )
 
 
-def _reconstruct_per_sweep(args, config):
+def _reconstruct_per_sweep(args, config, speed):
     from ._io import EventReader
     from ._model import load_calibration
 
@@ -493,7 +493,7 @@ def _reconstruct_per_sweep(args, config):
         for sig in (signal.SIGINT, signal.SIGTERM):
             previous[sig] = signal.signal(sig, end_of_recording)
     try:
-        res = _run_sweeps(args, cal, out, roi, stop, config)
+        res = _run_sweeps(args, cal, out, roi, stop, config, speed)
     finally:  # the handlers are this run's only (main() may be called in-process)
         if previous:
             import signal
@@ -1030,11 +1030,12 @@ def build_parser() -> argparse.ArgumentParser:
         default="auto",
         metavar="auto|off|F[,F...]",
         help="each sweep's mirror speed relative to the calibration's: auto (default) "
-        "measures it from the recording (a mirror whose speed varies by 0.2%% from "
-        "sweep to sweep otherwise costs a sweep ~2.5° SAM; README, Real sensors), off "
-        "keeps the calibration's, or the factors, one per sweep used (e.g. "
-        "1.002,0.999); the summary lists the factors used (the --per-sweep index: "
-        "each sweep's sweep_speed)",
+        "measures it from a recording of one sweep, and from each sweep with "
+        "--per-sweep (a mirror whose speed varies by 0.2%% from sweep to sweep "
+        "otherwise costs a sweep ~1.3° SAM; README, Real sensors); a recording of "
+        "several sweeps keeps the calibration's speed, as off does; or the factors, "
+        "one per sweep used (e.g. 1.002,0.999); the summary lists the factors used "
+        "(the --per-sweep index: each sweep's sweep_speed)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_strict(p)

@@ -28,7 +28,7 @@ import jax.random as jr
 import numpy as np
 
 import evhsi_jax as ev
-from evhsi_jax._reconstruct import _pipeline, _sweep_speed
+from evhsi_jax._reconstruct import _pipeline
 from evhsi_jax._reconstruct._pixels import pixel_lists
 
 SENSORS = {
@@ -51,15 +51,13 @@ def estimate(events, rig, info, sweeps):
         return inf.sweep_speed
     w = events.width
     cfg = ev.reconstruction.ProblemConfig()
-    noise = _pipeline.solve_noise(_pipeline.noise_model(rig), cfg)
-    if noise is None:
-        noise = _sweep_speed.IDEAL_NOISE
-    offsets = np.asarray(rig.column_offsets(w), np.float64)
-    return _sweep_speed.estimate_speeds(
-        rig, _pipeline.channel_table(rig), cfg, _pipeline.solver_spec("auto"), w,
-        offsets, sweeps, noise, pixel_lists(events, 0), np.zeros(w * events.height),
-        info.threshold_on.reshape(-1).astype(np.float64),
-        info.threshold_off.reshape(-1).astype(np.float64), float(rig.period_us),
+    # (as reconstruct calls it: the solve's noise model, IDEAL_NOISE where none)
+    return _pipeline._estimate_speeds(
+        rig, cfg, _pipeline.solver_spec("auto"), w,
+        np.asarray(rig.column_offsets(w), np.float64), sweeps,
+        _pipeline.solve_noise(_pipeline.noise_model(rig), cfg), pixel_lists(events, 0),
+        np.zeros(w * events.height), info.threshold_on.reshape(-1).astype(np.float64),
+        info.threshold_off.reshape(-1).astype(np.float64), float(rig.period_us), None,
     ).factors  # fmt: skip
 
 

@@ -156,9 +156,12 @@ def estimate_speeds(rig, table, cfg, spec, width, offsets_us, sweeps, noise, lis
                            offsets_us, period_us, thr_on, thr_off, threads,
                            cfg.robust_reject, per_pixel)  # fmt: skip
 
-        sub = _typical(sub, misfit(1.0, per_pixel=True))
+        # (the nominal speed's misfit of the pixels kept: each pixel is solved on
+        # its own, so it is their share of this solve's, not a solve of its own)
+        sub, at_one = _typical(sub, misfit(1.0, per_pixel=True))
         pixels[s] = sub[0].size
-        factors[s], n_eval = _minimise(lambda f, sub=sub: misfit(f, sub))
+        factors[s], n_eval = _minimise(lambda f, sub=sub: misfit(f, sub),
+                                       known={1.0: at_one})  # fmt: skip
         evaluations += n_eval + 1
     return SpeedEstimate(shrink_common(factors, pixels > 0), pixels, evaluations)
 
@@ -169,7 +172,8 @@ SPEED_OUTLIER = 5.0
 
 
 def _typical(sub, chi):
-    """The subset without its pixels whose misfit per row `chi / rows` is more than
+    """The subset (and its total misfit `chi`, per pixel, at the nominal speed)
+    without its pixels whose misfit per row `chi / rows` is more than
     `SPEED_OUTLIER` × the median: a mirror's speed moves every pixel's fit, a stray
     event or a changed scene a few. It came with the pixels' first events kept
     (module docstring), after a held-out run of the version before had lost 1.3–1.8°
@@ -178,7 +182,7 @@ def _typical(sub, chi):
     sel, starts, counts, t, sgn, lead = sub
     per_row = chi / np.maximum(counts[sel], 1)
     keep = per_row <= SPEED_OUTLIER * np.median(per_row)
-    return sel[keep], starts, counts, t, sgn, lead
+    return (sel[keep], starts, counts, t, sgn, lead), float(chi[keep].sum())
 
 
 def shrink_common(factors, measured, bias=None):
@@ -276,18 +280,19 @@ def _misfit(prob, sub, factors, width, offsets_us, period_us, thr_on, thr_off,
     return chi if per_pixel else float(chi.sum())
 
 
-def _minimise(fun, step=SPEED_STEP, bound=SPEED_BOUND):
+def _minimise(fun, step=SPEED_STEP, bound=SPEED_BOUND, known=None):
     """A minimum of `fun` near 1: three points `step` apart, moved downhill until the
     middle one is lowest, and the vertex of their parabola (within a step of the
     middle); 1 when the points reach 1 ± `bound` without a minimum (a misfit that
-    keeps falling is another model error, not the mirror). Returns `(argmin,
-    evaluations)`.
+    keeps falling is another model error, not the mirror). `known`: values of `fun`
+    already computed, by argument. Returns `(argmin, evaluations)` (the new ones).
 
     One parabola is enough: on `tcs` (threshold noise 0.01, mirror-speed jitter
     0.3 %, four draws; a development run of an earlier version) a second one through
     points half as far apart moved the answer by ≤ 0.0001, against a bias of
     ~+0.0006 that neither removes."""
-    seen = {}
+    seen = {round(f, 12): v for f, v in (known or {}).items()}
+    given = len(seen)
 
     def value(f):
         key = round(f, 12)
@@ -302,10 +307,10 @@ def _minimise(fun, step=SPEED_STEP, bound=SPEED_BOUND):
             break
         nxt = mid - step if lo < hi else mid + step
         if abs(nxt - 1.0) > bound:  # no minimum within the bound: not measured
-            return 1.0, len(seen)
+            return 1.0, len(seen) - given
         mid = nxt
     curv = lo - 2.0 * c + hi
     if curv <= 0:  # (flat or concave: the middle point)
-        return mid, len(seen)
+        return mid, len(seen) - given
     vertex = mid + 0.5 * step * (lo - hi) / curv
-    return min(max(vertex, mid - step), mid + step), len(seen)
+    return min(max(vertex, mid - step), mid + step), len(seen) - given

@@ -720,9 +720,9 @@ class _ReferenceCarry:
     them (:func:`evhsi_jax._reconstruct._sweep_speed.warp_times`): the reference
     lies where the band leaves the pixel, on a steep flank."""
 
-    def __init__(self, h: int, w: int, eta_us: float, offsets_us=None, period_us=None):
+    def __init__(self, h: int, w: int, eta_us: float, offsets_us, period_us: float):
         self.h, self.w, self.eta = h, w, eta_us
-        self.offsets = None if offsets_us is None else np.asarray(offsets_us, np.float64)
+        self.offsets = np.asarray(offsets_us, np.float64)
         self.period = period_us
         self.last_t = np.full(h * w, np.nan)  # (event time + TIMESTAMP_CENTRE_US)
 
@@ -731,7 +731,7 @@ class _ReferenceCarry:
             return
         pix = ev.y.astype(np.int64) * self.w + ev.x.astype(np.int64)
         t = ev.t_us.astype(np.float64) + TIMESTAMP_CENTRE_US
-        if factor is not None and factor != 1.0 and self.offsets is not None:
+        if factor is not None and factor != 1.0:
             t = start + warp_times(
                 t - start, ev.x.astype(np.int64), self.offsets, self.period, [factor]
             )  # fmt: skip

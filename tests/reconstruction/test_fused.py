@@ -237,7 +237,8 @@ def test_long_rows_by_woodbury_give_the_same_optimum(noisy):
         second = events.take(np.flatnonzero((t >= t0) & (t < 2 * t0)))
         kept, _, _ = _pipeline.screen_events(second, rig, t0, noise, 1, None)
         counts, starts, t_rel, sgn = _pixels.pixel_lists(kept, t0)
-        carry = _ReferenceCarry(h, w, float(rig.refractory_us))
+        carry = _ReferenceCarry(h, w, float(rig.refractory_us), rig.column_offsets(w),
+                                period)  # fmt: skip
         carry.add(events.take(np.flatnonzero(t < t0)))
         ref = carry.reference_us()
         lead = _pipeline._reference_lead_us(ref, t0, period, h, w)
