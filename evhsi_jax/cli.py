@@ -726,6 +726,7 @@ def cmd_calibrate(args):
             else f"no low-pass ({how})"
         )
     )
+    print(f"{'mirror speed':18s} {'':>12s} {res.sweep_speed_note}")
     if rig.band_profile is None:
         band = f"Gaussian, FWHM {float(rig.fwhm_nm):.2f} nm (kept from --init" + (
             ": its fit did not converge)" if res.band_unresolved else ")"
@@ -1030,12 +1031,12 @@ def build_parser() -> argparse.ArgumentParser:
         default="auto",
         metavar="auto|off|F[,F...]",
         help="each sweep's mirror speed relative to the calibration's: auto (default) "
-        "measures it from a recording of one sweep, and from each sweep with "
-        "--per-sweep (a mirror whose speed varies by 0.2%% from sweep to sweep "
-        "otherwise costs a sweep ~1.3° SAM; README, Real sensors); a recording of "
-        "several sweeps keeps the calibration's speed, as off does; or the factors, "
-        "one per sweep used (e.g. 1.002,0.999); the summary lists the factors used "
-        "(the --per-sweep index: each sweep's sweep_speed)",
+        "measures each sweep's from the recording (with --per-sweep each sweep "
+        "alone; a mirror whose speed varies by 0.2%% from sweep to sweep otherwise "
+        "costs a sweep ~1.3° SAM; README, Real sensors); off keeps the "
+        "calibration's; or the factors, one per sweep used (e.g. 1.002,0.999); the "
+        "summary lists the factors used (the --per-sweep index: each sweep's "
+        "sweep_speed)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_strict(p)

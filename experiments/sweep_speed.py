@@ -6,10 +6,13 @@ sensor's true rig and per-pixel thresholds (no calibration: this is where the
 estimator's design was chosen; the held-out, calibrated figures are
 `experiments/realism.py`'s). For each sensor and draw (`--seeds`), one recording of
 `--sweeps` sweeps is reconstructed with `sweep_speed="off"` (the rig's speed), with
-the estimate (`reconstruct`'s own for one sweep; for several, `estimate_speeds` with
-its two-sweep windows, which `auto` does not use) and with the true factors. The
+the estimate (`reconstruct`'s own: one sweep alone, several each in a window with the
+sweep before) and with the true factors. The
 sensors' noise keys are the reconstruction's noise model; the mirror-speed jitter alone
-gets threshold noise 0.0033 in it (what a calibration reads from such a chart).
+gets threshold noise 0.0033 in it (what a calibration read from such a chart at one
+speed; since it reads each chart sweep at its own, ~0.0001: `chart_speed.py`).
+`results/sweep_speed_4sweeps.json` was written before `reconstruct` estimated
+recordings of several sweeps, by the same windows called directly (unscreened lists).
 
 Prints a table (true and estimated deviation of each sweep, SAM / PSNR of the three)
 and writes `--out` (JSON).
@@ -28,8 +31,6 @@ import jax.random as jr
 import numpy as np
 
 import evhsi_jax as ev
-from evhsi_jax._reconstruct import _pipeline
-from evhsi_jax._reconstruct._pixels import pixel_lists
 
 SENSORS = {
     "mirror jitter 0.2 %": {"sweep_rate_jitter": 0.002},
@@ -42,23 +43,12 @@ SENSORS = {
 }
 
 
-def estimate(events, rig, info, sweeps):
-    """The estimate: `reconstruct`'s for one sweep; for several the same estimator
-    with its two-sweep windows (what `auto` leaves off)."""
-    if sweeps == 1:
-        _, inf = ev.reconstruct(events, rig, threshold_on_map=info.threshold_on,
-                                threshold_off_map=info.threshold_off, return_info=True)  # fmt: skip
-        return inf.sweep_speed
-    w = events.width
-    cfg = ev.reconstruction.ProblemConfig()
-    # (as reconstruct calls it: the solve's noise model, IDEAL_NOISE where none)
-    return _pipeline._estimate_speeds(
-        rig, cfg, _pipeline.solver_spec("auto"), w,
-        np.asarray(rig.column_offsets(w), np.float64), sweeps,
-        _pipeline.solve_noise(_pipeline.noise_model(rig), cfg), pixel_lists(events, 0),
-        np.zeros(w * events.height), info.threshold_on.reshape(-1).astype(np.float64),
-        info.threshold_off.reshape(-1).astype(np.float64), float(rig.period_us), None,
-    ).factors  # fmt: skip
+def estimate(events, rig, info):
+    """`reconstruct`'s estimate (one sweep alone; several each with the sweep
+    before)."""
+    _, inf = ev.reconstruct(events, rig, threshold_on_map=info.threshold_on,
+                            threshold_off_map=info.threshold_off, return_info=True)  # fmt: skip
+    return inf.sweep_speed
 
 
 def main():
@@ -85,7 +75,7 @@ def main():
         for seed in (int(s) for s in args.seeds.split(",")):
             events, info = ev.simulate(scene, sim, sweeps=args.sweeps, key=jr.key(seed),
                                        return_info=True)  # fmt: skip
-            est = estimate(events, rig, info, args.sweeps)
+            est = estimate(events, rig, info)
             true = np.asarray(info.speed_factor, np.float64)
             res = {}
             for label, mode in (("off", "off"), ("estimate", est), ("true", true)):

@@ -30,10 +30,12 @@ from .._model import (
     lookup,
     photoreceptor_lowpass,
 )
-from .._reconstruct import group_pixels
+from .._reconstruct import group_pixels, pixel_lists, warp_lists, warp_times
 
 __all__ = [
     "ChartData",
+    "ChartSpeeds",
+    "chart_sweep_speeds",
     "chart_data",
     "chart_log_steps",
     "chart_residuals",
@@ -92,6 +94,7 @@ def chart_data(
     rows_per_label: int | None = None,
     max_events: int = 256,
     pixels: np.ndarray | None = None,
+    speeds: ChartSpeeds | None = None,
 ) -> ChartData:
     """Select chart pixels and pad their events into one array.
 
@@ -104,6 +107,10 @@ def chart_data(
       (evenly spread) to bound the work; `None` keeps all pixels.
     - `max_events`: at most this many events per pixel (the earliest).
     - `pixels`: `(H, W)` bool, only these pixels (with `rows_per_label`: both).
+    - `speeds`: each sweep's mirror speed (:func:`chart_sweep_speeds`): the events
+      are read where the nominal sweep has the band they saw
+      (:func:`evhsi_jax.reconstruction.warp_times`); None reads every sweep at the
+      rig's speed.
     """
     if (chart.height, chart.width) != (events.height, events.width):
         raise ValueError(
@@ -128,12 +135,16 @@ def chart_data(
     pix = events.y.astype(np.int64) * events.width + events.x
     sel = keep.reshape(-1)[pix]
     sub = events.take(np.nonzero(sel)[0])
+    lists = None
+    if speeds is not None:
+        lists = speeds.warp(pixel_lists(sub, t_start_us), events.width)
     batches, counts, _ = group_pixels(
         sub,
         t_start_us=t_start_us,
         chunk_pixels=events.width * events.height,
         min_chunk=1,
         max_events=max_events,
+        lists=lists,
     )
     if not batches:
         raise ValueError("the chart capture has no events on the chart pixels")
@@ -180,6 +191,164 @@ def sweep_first_events(data: ChartData, period_us: float) -> np.ndarray:
     first = np.zeros(sweep.shape, bool)
     first[:, 1:] = sweep[:, 1:] != sweep[:, :-1]
     return first & data.mask
+
+
+#: Chart pixels each sweep's speed is measured from (the most; spread evenly): the
+#: factor is common to a sweep's pixels, and 2048 of them measure it to ~1e-5 on an
+#: ideal sensor (32×48 chart).
+SPEED_CHART_PIXELS = 2048
+#: Spacing of the three factors whose parabolas give each sweep's (two rounds).
+SPEED_CHART_STEP = 0.002
+#: Rounds of parabolas at most (each around the last's answers, which moved by a step
+#: at most); they stop when no factor moved by more than `SPEED_CHART_TOL`.
+SPEED_CHART_ROUNDS = 8
+SPEED_CHART_TOL = 2e-5
+#: The factors stay within 1 ± this (the rig key `sweep_rate_jitter` is ≤ 1 %).
+SPEED_CHART_BOUND = 0.03
+#: Residuals beyond this (threshold units) count as this in the sweeps' misfit: a
+#: stray event moves its sweep's parabola by no more than a poor fit does.
+SPEED_CHART_CAP = 3.0
+#: The sweeps are read at their own speeds when the factors' robust spread exceeds
+#: this many times their median standard error, and `SPEED_CHART_MIN_JITTER`.
+SPEED_CHART_SIGNIFICANCE = 4.0
+#: (Below a relative spread of 0.01 %, a sweep's band is misplaced by < 0.05 nm.)
+SPEED_CHART_MIN_JITTER = 1e-4
+#: A sweep with fewer measured events keeps factor 1 (and does not count).
+SPEED_CHART_MIN_EVENTS = 200
+
+
+@dataclasses.dataclass(frozen=True)
+class ChartSpeeds:
+    """Each sweep's mirror-speed factor in a chart capture (:func:`chart_sweep_speeds`)
+    and what moving its events takes.
+
+    `factors`: `(sweeps,)`, mean 1 over the measured sweeps (their common speed is
+    the rig's β); `sigma`: each factor's standard error (inf: not measured);
+    `offsets_us`: the τx of the rig they were measured with, `(W,)`; `period_us`.
+    """
+
+    factors: np.ndarray
+    sigma: np.ndarray
+    offsets_us: np.ndarray
+    period_us: float
+
+    @property
+    def measured(self) -> np.ndarray:
+        return np.isfinite(self.sigma)
+
+    @property
+    def jitter(self) -> float:
+        """The factors' relative spread (1.4826 × median absolute deviation: a sweep
+        the estimate got wrong does not make it; the simulator's `sweep_rate_jitter`
+        is their σ)."""
+        f = self.factors[self.measured]
+        if f.size < 3:
+            return 0.0
+        return float(1.4826 * np.median(np.abs(f - np.median(f))))
+
+    @property
+    def significant(self) -> bool:
+        """Whether the sweeps' speeds differ by more than their estimate's error."""
+        if self.measured.sum() < 3:
+            return False
+        noise = float(np.median(self.sigma[self.measured]))
+        return self.jitter > max(SPEED_CHART_SIGNIFICANCE * noise, SPEED_CHART_MIN_JITTER)
+
+    def warp(self, lists, width: int):
+        """:func:`pixel_lists` of the capture (times from its start) with every event
+        moved to where the nominal sweep has its band."""
+        return warp_lists(lists, width, self.offsets_us, self.period_us, self.factors)
+
+    def columns(self, x0: int, x1: int) -> ChartSpeeds:
+        """The same factors for a crop of the sensor's columns `x0:x1`."""
+        return dataclasses.replace(self, offsets_us=self.offsets_us[x0:x1])
+
+
+def chart_sweep_speeds(
+    events: EventStream,
+    chart: Scene,
+    rig: Rig,
+    *,
+    t_start_us: int,
+    rows_per_label: int | None = 4,
+) -> ChartSpeeds | None:
+    """Each sweep's mirror-speed factor in a chart capture, measured with a fitted rig.
+
+    A mirror whose speed differs from sweep to sweep (`sweep_rate_jitter`) runs the
+    band over the channels faster or slower by a factor $f_s$ in sweep $s$; a fit of
+    one β to all the chart's sweeps takes their mean, and every event of a faster or
+    slower sweep then misfits by a step that grows along the sweep — which the
+    per-pixel thresholds, the noise measured and τx absorb in part. The chart's
+    reflectance is known, so each sweep's factor is where its events fit the rig
+    best: with the pixels' own thresholds fixed (closed form at $f = 1$), the capped
+    sum of squared residuals of each sweep (:func:`_own_residuals`, capped at
+    `SPEED_CHART_CAP`) at three factors `SPEED_CHART_STEP` apart, the vertex of each
+    sweep's parabola, twice (the second round around the first's answers). Up to
+    `SPEED_CHART_PIXELS` chart pixels, up to `MAP_MAX_EVENTS` events each; each
+    sweep's first event is left out (:func:`sweep_first_events`).
+
+    The factors are scaled to mean 1 over the measured sweeps (β is their common
+    speed). Each one's standard error is the parabola's: $σ_f^2 = 2 δ^2 S / (n
+    κ)$, $S$ the sweep's misfit at its factor, $n$ its events, $κ$ the second
+    difference over steps $δ$. None when the capture has fewer than three sweeps
+    with `SPEED_CHART_MIN_EVENTS` events.
+    """
+    period = float(rig.period_us)
+    w = events.width
+    rig = _with_column_offsets(rig, w)
+    data = chart_data(events, chart, rig, t_start_us=t_start_us,
+                      rows_per_label=rows_per_label, max_events=MAP_MAX_EVENTS)  # fmt: skip
+    n_px = data.t_us.shape[0]
+    if n_px > SPEED_CHART_PIXELS:
+        data = data.subset(
+            np.linspace(0, n_px - 1, SPEED_CHART_PIXELS).round().astype(np.int64)
+        )
+    k = max(8, 1 << int(data.t_us.shape[1] - 1).bit_length())  # (few shapes)
+    pad = ((0, 0), (0, k - data.t_us.shape[1]))
+    data = dataclasses.replace(
+        data, t_us=np.pad(data.t_us, pad), polarity=np.pad(data.polarity, pad),
+        mask=np.pad(data.mask, pad) & ~np.pad(sweep_first_events(data, period), pad),
+    )  # fmt: skip
+    t = np.asarray(data.t_us, np.float64)
+    sweep = np.floor(t / period).astype(np.int64)
+    on = data.mask & (sweep >= 0)
+    if not on.any():
+        return None
+    n_sweeps = int(sweep[on].max()) + 1
+    n_ev = np.bincount(sweep[on], minlength=n_sweeps)
+    measured = n_ev >= SPEED_CHART_MIN_EVENTS
+    if measured.sum() < 3:
+        return None
+    offsets = np.asarray(rig.column_offsets_us, np.float64)
+    columns = np.broadcast_to(data.column[:, None], t.shape).reshape(-1)
+    overlap = band_overlap(rig)
+    c_on, c_off = _closed_form_thresholds(_log_steps(rig, data, overlap=overlap), data)
+
+    def misfit(factors):  # (sweeps,) capped sum of squares, and the events counted
+        moved = warp_times(t.reshape(-1), columns, offsets, period, factors)
+        view = dataclasses.replace(data, t_us=moved.reshape(t.shape))
+        r = _own_residuals(_log_steps(rig, view, overlap=overlap), data, c_on, c_off)
+        ok = on & np.isfinite(r)
+        sq = np.minimum(r[ok] ** 2, SPEED_CHART_CAP**2)
+        return np.bincount(sweep[ok], sq, minlength=n_sweeps)[:n_sweeps]
+
+    step = SPEED_CHART_STEP
+    factors = np.ones(n_sweeps)
+    for _ in range(SPEED_CHART_ROUNDS):
+        lo, mid, hi = (misfit(factors + j * step) for j in (-1, 0, 1))
+        curv = lo - 2.0 * mid + hi
+        good = measured & (curv > 0)
+        move = np.zeros(n_sweeps)
+        move[good] = 0.5 * step * (lo[good] - hi[good]) / curv[good]
+        move = np.clip(move, -step, step)  # (a step at most: then around the new ones)
+        factors = np.clip(factors + move, 1.0 - SPEED_CHART_BOUND, 1.0 + SPEED_CHART_BOUND)
+        sigma = np.full(n_sweeps, np.inf)
+        sigma[good] = np.sqrt(2.0 * step**2 * mid[good] / (n_ev[good] * curv[good]))
+        if np.abs(move).max() < SPEED_CHART_TOL:
+            break
+    factors[~np.isfinite(sigma)] = 1.0
+    factors[np.isfinite(sigma)] /= factors[np.isfinite(sigma)].mean()
+    return ChartSpeeds(factors, sigma, offsets, period)
 
 
 def spectral_traces(
@@ -559,6 +728,7 @@ def threshold_maps_from_chart(
     t_start_us: int | None = None,
     psf_sigmas_px=PSF_GRID_PX,
     return_psf: bool = False,
+    speeds: ChartSpeeds | None = None,
 ):
     """Per-pixel ON/OFF thresholds with the global parameters fixed (closed form).
 
@@ -583,6 +753,9 @@ def threshold_maps_from_chart(
     estimates nothing: its reference lies across the dark part between sweeps
     (:func:`sweep_first_events`).
 
+    `speeds`: each sweep's mirror speed (:func:`chart_sweep_speeds`; None: the rig's
+    for every sweep).
+
     **Returns:** `(threshold_on, threshold_off)` maps, each `(H, W)`; with
     `return_psf` also the chosen σ (pixels).
     """
@@ -604,7 +777,7 @@ def threshold_maps_from_chart(
         try:
             d = chart_data(events, chart, rig, t_start_us=t_start_us,
                            rows_per_label=None, max_events=MAP_MAX_EVENTS,
-                           pixels=rows)  # fmt: skip
+                           pixels=rows, speeds=speeds)  # fmt: skip
         except ValueError:  # no events in these rows
             d = None
         else:

@@ -87,12 +87,14 @@ from .._reconstruct import lit_interval_us, noise_model, screen_events
 from ._chart import (
     PHOTORECEPTOR_REF_HZ,
     ChartData,
+    ChartSpeeds,
     _closed_form_thresholds,
     _host_lists,
     _log_steps,
     _with_column_offsets,
     chart_data,
     chart_residuals,
+    chart_sweep_speeds,
     lowpassed_traces,
     spectral_traces,
     sweep_first_events,
@@ -688,6 +690,10 @@ class CalibrationResult:
     photoreceptor_fitted: bool = False  # the cut-off measured (else kept from init)
     band_fitted: bool = False  # the band profile fitted (else kept from init)
     band_unresolved: bool = False  # its fit was tried and did not converge: kept
+    # Each chart sweep's mirror speed as measured (None: not measured), and whether
+    # the fit read the sweeps at them (their spread above the estimate's error).
+    sweep_speeds: ChartSpeeds | None = None
+    sweep_speeds_used: bool = False
 
     @property
     def calibration(self) -> Calibration:
@@ -722,8 +728,27 @@ class CalibrationResult:
                 if self.band_fitted
                 else "kept from the initial rig"
                 + (" (its fit did not converge)" if self.band_unresolved else ""),
+                "sweep_rate_jitter": float(e.sweep_rate_jitter),
+                "sweep_speed": self.sweep_speed_note,
+                "chart_sweep_speeds": None
+                if self.sweep_speeds is None
+                else [round(float(f), 6) for f in self.sweep_speeds.factors],
             },
         )
+
+    @property
+    def sweep_speed_note(self) -> str:
+        """How the fit read the chart's sweeps (the report's `sweep_speed`)."""
+        sp = self.sweep_speeds
+        if sp is None:
+            return "not measured (one speed)"
+        n, pct = int(sp.measured.sum()), 100.0 * sp.jitter
+        if self.sweep_speeds_used:
+            return f"each of {n} sweeps read at its own speed (spread {pct:.3f} %)"
+        if sp.significant:
+            return (f"one speed: the fit at the {n} sweeps' own speeds (spread "
+                    f"{pct:.3f} %) failed")  # fmt: skip
+        return f"one speed ({n} sweeps agree within the estimate's error)"
 
 
 class NotConverged(ValueError):
@@ -907,14 +932,15 @@ def calibrate(events: EventStream, chart: Scene, init: Rig, **kw) -> Calibration
 
 
 def _screened_chart_data(
-    events, chart, rig, t_start_us, rows_per_label, from_data, fit_baseline
+    events, chart, rig, t_start_us, rows_per_label, from_data, fit_baseline, speeds=None
 ):
     """The chart's per-pixel event lists with background activity and hot pixels
     screened out (when starting from the data), checked for enough events and
     levels: `(data, screened events, hot-pixel map)`."""
     data = chart_data(
-        events, chart, rig, t_start_us=t_start_us, rows_per_label=rows_per_label
-    )
+        events, chart, rig, t_start_us=t_start_us, rows_per_label=rows_per_label,
+        speeds=speeds,
+    )  # fmt: skip
     if from_data:
         # Background activity and hot pixels are not in the model: find them with a
         # first guess of the sweep's timing, drop their events, then start again.
@@ -924,8 +950,9 @@ def _screened_chart_data(
             margin_us=SCREEN_MARGIN_US,
         )  # fmt: skip
         data = chart_data(
-            events, chart, rig, t_start_us=t_start_us, rows_per_label=rows_per_label
-        )
+            events, chart, rig, t_start_us=t_start_us, rows_per_label=rows_per_label,
+            speeds=speeds,
+        )  # fmt: skip
     else:
         hot = np.zeros((events.height, events.width), bool)
     # Each sweep's first event refers to the sweep before, across the dark part the
@@ -1085,6 +1112,7 @@ def _fit_chart_float64(
     verbose: bool = False,
     maps: bool = True,
     noise: bool = True,
+    speeds: ChartSpeeds | str | None = "measure",
 ) -> CalibrationResult:
     """Fit thresholds, β, c and per-column τx to a chart capture (then per-pixel maps).
 
@@ -1123,9 +1151,17 @@ def _fit_chart_float64(
     - `noise`: measure the sensor's noise (per-crossing threshold noise, timestamp
       jitter, background rate; False: zeros, as for the band's strip, whose rig
       only gives the band and a start).
+    - `speeds`: each sweep's mirror speed. `"measure"` (default, with `maps` and
+      `noise`): after the fit, :func:`._chart.chart_sweep_speeds` measures them
+      with the fitted rig; when they differ by more than the estimate's error (a
+      mirror with `sweep_rate_jitter`) the whole calibration is done again with
+      every sweep's events read at its own speed, and the rig's
+      `sweep_rate_jitter` is their spread. A :class:`._chart.ChartSpeeds`: read the
+      sweeps at those; None: every sweep at the rig's speed.
 
     **Returns:** a :class:`CalibrationResult`.
     """
+    call = dict(locals())  # (the arguments: a second fit at the sweeps' own speeds)
     import time
 
     t0 = time.perf_counter()
@@ -1141,6 +1177,7 @@ def _fit_chart_float64(
             max_steps=max_steps, fit_baseline=fit_baseline, from_data=from_data,
             response_degree=response_degree, fit_curvature=fit_curvature,
             fit_photoreceptor=fit_photoreceptor, verbose=verbose,
+            speeds=speeds if isinstance(speeds, ChartSpeeds) else None,
         )  # fmt: skip
         fit_band = False
         if fit_photoreceptor and not init.effects.photoreceptor_hz:
@@ -1157,8 +1194,9 @@ def _fit_chart_float64(
     if t_start_us is None:
         t_start_us = int(events.trigger_t_us[0]) if events.trigger_t_us.size else 0
     captured = events
+    given = speeds if isinstance(speeds, ChartSpeeds) else None
     data, events, hot = _screened_chart_data(
-        events, chart, rig, t_start_us, rows_per_label, from_data, fit_baseline
+        events, chart, rig, t_start_us, rows_per_label, from_data, fit_baseline, given
     )
     if from_data:
         rig = initial_guess(data, rig)
@@ -1336,13 +1374,29 @@ def _fit_chart_float64(
         fitted = fitted.replace_host(
             photoreceptor_hz=hz if hz <= PHOTORECEPTOR_IDEAL_HZ else 0.0
         )
+    found = given
+    if isinstance(speeds, str) and per_pixel and maps and noise:  # ("measure")
+        found = chart_sweep_speeds(
+            events, chart, fitted, t_start_us=t_start_us, rows_per_label=rows_per_label
+        )
+        if found is not None and found.significant:
+            if verbose:
+                print(f"calibrate: the chart's sweeps differ in speed (spread "
+                      f"{found.jitter:.2e}): fitted again at each sweep's own")  # fmt: skip
+            try:
+                again = _fit_chart_float64(**dict(call, speeds=found))
+            except ValueError as err:  # (NotConverged too): one speed, as before
+                if verbose:
+                    print(f"calibrate: the fit at the sweeps' speeds failed ({err})")
+            else:
+                return dataclasses.replace(again, seconds=time.perf_counter() - t0)
     on_map = off_map = psf = None
     if per_pixel and maps:
         # The compiler's freed memory back to the system before the maps' own peak
         # (a first run, which compiles, held ~0.5 GB of it here).
         release_free_memory()
         on_map, off_map, psf = threshold_maps_from_chart(
-            events, chart, fitted, t_start_us=t_start_us, return_psf=True
+            events, chart, fitted, t_start_us=t_start_us, return_psf=True, speeds=given
         )
         # The population thresholds: mean over the chart pixels that had such events.
         c_on, c_off = _closed_form_thresholds(_log_steps(fitted, data), data)
@@ -1373,6 +1427,7 @@ def _fit_chart_float64(
     fitted = fitted.replace_host(
         threshold_noise=measured["threshold_noise"],
         timestamp_jitter_us=measured["timestamp_jitter_us"],
+        sweep_rate_jitter=0.0 if given is None else min(given.jitter, 0.01),
         noise_rate_hz=bg_rate,
         **({} if psf is None else {"psf_sigma_px": psf}),
     )
@@ -1393,11 +1448,13 @@ def _fit_chart_float64(
         photoreceptor_fitted=photoreceptor_fitted,
         band_fitted=band_fitted,
         band_unresolved=band_tried and not band_fitted,
+        sweep_speeds=found,
+        sweep_speeds_used=given is not None,
     )
 
 
 def _band_from_strip(
-    events: EventStream, chart: Scene, init: Rig, **kw
+    events: EventStream, chart: Scene, init: Rig, speeds=None, **kw
 ) -> tuple[Rig, bool]:
     """`init` with the band profile of a calibration of the chart's middle
     `BAND_CROP_COLUMNS` columns (all rows; `kw` as :func:`_fit_chart_float64`'s),
@@ -1418,6 +1475,7 @@ def _band_from_strip(
         fit_band=True,
         maps=False,
         noise=False,
+        speeds=None if speeds is None else speeds.columns(x0, x0 + BAND_CROP_COLUMNS),
         **kw,
     )
     release_free_memory()  # the strip's compiler memory, before the whole chart's

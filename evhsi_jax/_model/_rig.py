@@ -125,7 +125,8 @@ _DOC = {
     "intensity, Hz, proportional to intensity (0: instantaneous)",
     "hot_pixel_fraction": "fraction of hot pixels firing steadily (simulation only)",
     "hot_pixel_rate_hz": "event rate of a hot pixel, Hz (simulation only)",
-    "sweep_rate_jitter": "relative σ of each sweep's mirror speed (simulation only)",
+    "sweep_rate_jitter": "relative σ of each sweep's mirror speed (simulated; "
+    "calibrate measures it from the chart's sweeps, reconstruct each recording's)",
     "psf_sigma_px": "Gaussian optical point-spread σ, pixels (simulation only)",
     "sweep_curvature_nm": "band-centre deviation from the linear sweep at mid-range, "
     "nm (parabolic, zero at the channel range's ends)",

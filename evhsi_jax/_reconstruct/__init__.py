@@ -16,6 +16,7 @@ from ._pixels import TIMESTAMP_CENTRE_US as TIMESTAMP_CENTRE_US
 from ._pixels import PixelBatch as PixelBatch
 from ._pixels import PixelEvents as PixelEvents
 from ._pixels import group_pixels as group_pixels
+from ._pixels import pixel_lists as pixel_lists
 from ._problem import ProblemConfig as ProblemConfig
 from ._problem import lit_interval_us as lit_interval_us
 from ._problem import pixel_system as pixel_system
@@ -25,4 +26,5 @@ from ._solvers import active_set_batch as active_set_batch
 from ._solvers import apg as apg
 from ._solvers import kkt_residual as kkt_residual
 from ._solvers import svd_nullvector as svd_nullvector
+from ._sweep_speed import warp_lists as warp_lists
 from ._sweep_speed import warp_times as warp_times

@@ -741,13 +741,13 @@ def reconstruct(
       rounding).
     - `threads`: worker threads of the fused backend (default: the usable cores).
     - `sweep_speed`: each sweep's mirror speed relative to the calibration's.
-      `"auto"` (default): measured from a recording of one sweep (each sweep of
-      :func:`evhsi_jax.reconstruct_sweeps`) when numba is there (the fused kernel
+      `"auto"` (default): each sweep's factor measured from the recording (each
+      sweep of :func:`evhsi_jax.reconstruct_sweeps` alone; in a recording of
+      several, each with the sweep before it) when numba is there (the fused kernel
       solves the subsets, whatever the backend): a mirror whose speed varies by
       0.2 % from sweep to sweep otherwise costs a ColorChecker sweep ~1.3° SAM
-      (:mod:`._sweep_speed`); a recording of several sweeps keeps the nominal speed
-      (the estimate was not reliable enough there); `"off"`: the nominal speed; or
-      the factors themselves, one per sweep used. The info's `sweep_speed` has the
+      (:mod:`._sweep_speed`); `"off"`: the nominal speed; or the factors
+      themselves, one per sweep used. The info's `sweep_speed` has the
       factors used (None: the nominal speed).
     - `mesh`: a `jax.sharding.Mesh` with a `"pixels"` axis
       (:func:`evhsi_jax.sharding.pixel_mesh`): each chunk's pixels are split over its devices,
@@ -836,11 +836,8 @@ def reconstruct(
         events, rig, t_start_us, noise, sweeps, cal.hot_pixels
     )  # (screen_events; the kept events taken below where needed)
     noise = noise_solve
-    # The mirror's speed is measured in a recording of one sweep (with several the
-    # estimate was not reliable enough: _sweep_speed's module docstring).
-    estimate = (
-        isinstance(speeds, str) and sweeps == 1 and use_numba() and len(events) > 0
-    )
+    # The mirror's speed of each sweep, measured from the recording (_sweep_speed).
+    estimate = isinstance(speeds, str) and use_numba() and len(events) > 0
     # A bucket's last chunk is padded to sub × 2^j (small images and buckets pad
     # little); a bucket of fewer than a quarter chunk of pixels joins the next one
     # (one compiled shape less for a little padding).

@@ -28,14 +28,17 @@ scene (+0.0002 to +0.0007 on `tcs`), common to the sweeps of a recording; the co
 deviation is shrunk by it (:func:`shrink_common`), so a mirror without jitter keeps
 factor 1.
 
-`reconstruct(sweep_speed="auto")` measures recordings of ONE sweep — a single capture,
-or each sweep of `reconstruct_sweeps`. For several sweeps this module estimates each
-in a window with the sweep before (its factor fixed at its estimate), which on the
-training scene with the true rig found the sweeps' factors to ~0.0004
-(`experiments/sweep_speed.py --sweeps 4`), but with a rig calibrated from a gray
-chart it took up the calibration's errors through the rows that link the two sweeps
-(`tcs`, background 0.3 Hz, no mirror jitter, 4 sweeps: 0.65° → 1.38°; windows of one
-sweep each: 3.45°), so `auto` leaves those at the calibration's speed.
+`reconstruct(sweep_speed="auto")` measures every sweep: a recording of one sweep (a
+single capture, or each sweep of `reconstruct_sweeps`) alone, one of several each in
+a window with the sweep before (that one's factor fixed at its estimate; the rows
+that link two sweeps are then in the fit). Until the calibration read its chart's
+sweeps at their own speeds (`calibrate`, `_calibrate._chart.chart_sweep_speeds`),
+`auto` left recordings of several sweeps at the calibration's speed: with a
+calibration fitted to a jittery chart at one speed, the windows gained little
+(`tcs`, 0.2 % jitter, 4 sweeps: 2.31° → 2.20°; the true factors gave 2.34°). With
+the chart read at its sweeps' speeds they gain what the true factors do (the same
+case: 4.46° → 0.87°, true factors 0.90°; README, Real sensors, "The mirror's speed
+in the chart's sweeps").
 """
 
 from __future__ import annotations

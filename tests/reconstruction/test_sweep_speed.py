@@ -79,8 +79,9 @@ def _sweep(events, info, cal, s):
 def test_the_factor_is_measured_and_helps(jittery):
     """From one sweep the estimate lies within 0.001 of its true factor, and the cube
     is closer to the truth than with the calibration's speed (and as close as with
-    the true factor); a recording of two sweeps keeps the nominal speed unless the
-    factors are given."""
+    the true factor); in the recording of both sweeps each sweep's factor is
+    measured (with the sweep before it, :func:`_sweep_speed._sweep_subset`) and
+    helps too."""
     cal, scene, events, info = jittery
     truth = scene.truth_cube(cal.rig.grid)
     true = np.asarray(info.speed_factor)
@@ -97,8 +98,11 @@ def test_the_factor_is_measured_and_helps(jittery):
     sam = {k: ev.evaluate(c, truth)["sam_deg"] for k, c in cubes.items()}
     assert sam["auto"] < sam["off"] - 0.1, sam
     assert sam["auto"] < sam["true"] + 0.2, sam
-    _, both = ev.reconstruct(events, cal, return_info=True)
-    assert both.sweep_speed is None
+    cube, both = ev.reconstruct(events, cal, return_info=True)
+    np.testing.assert_allclose(both.sweep_speed, true, atol=1e-3)
+    steady = ev.reconstruct(events, cal, sweep_speed="off")
+    both_sam = ev.evaluate(cube, truth)["sam_deg"]
+    assert both_sam < ev.evaluate(steady, truth)["sam_deg"] - 0.1
     _, given = ev.reconstruct(events, cal, sweep_speed=true, return_info=True)
     np.testing.assert_array_equal(given.sweep_speed, true)
 
@@ -203,7 +207,7 @@ def test_cli_sweep_speed(jittery, tmp_path, capsys):
         ref, inf = ev.reconstruct(events, cal, sweep_speed=mode, return_info=True)
         np.testing.assert_array_equal(np.load(dest)["cube"], ref)
         printed = capsys.readouterr().out
-        # (two sweeps: auto keeps the nominal speed, so only given factors are said)
+        # (said when measured or given, not with off)
         assert ("mirror speed per sweep" in printed) == (inf.sweep_speed is not None)
         if opt is not None and opt != "off":
             assert "+0.40, -0.30 %" in printed
