@@ -6,7 +6,7 @@ Setup (a user's procedure): for each sensor and draw (`--seeds`), a 32-sweep gra
 chart is calibrated twice from the default rig — as `evhsi calibrate` does now (each
 sweep's speed measured from the chart, the chart fitted again at them when they differ
 by more than the estimate's error: `_calibrate._chart.chart_sweep_speeds`) and with
-one speed for every sweep (`speeds=None`, what it did before); then the training scene
+one speed for every sweep (`sweep_speeds=None`, what it did before); then the training scene
 `tcs` (never an evaluation scene) is recorded by the same sensor for 1 and 4 sweeps
 and reconstructed with each calibration at the calibration's speed (`sweep_speed="off"`),
 with `reconstruct`'s own estimate (`"auto"`: one sweep alone, several each with the
@@ -53,7 +53,7 @@ def run_case(keys, size, seed) -> dict:
     gray, ginfo = ev.simulate(chart, true, sweeps=CHART_SWEEPS, key=key, return_info=True)
     out = {"chart_factors": np.asarray(ginfo.speed_factor).tolist()}
     cals = {}
-    for name, kw in (("each", {}), ("one", {"speeds": None})):
+    for name, kw in (("each", {}), ("one", {"sweep_speeds": None})):
         t0 = time.perf_counter()
         res = ev.calibrate(gray, chart, user_init(true), **kw)
         cals[name] = res.calibration

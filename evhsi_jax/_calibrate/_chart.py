@@ -94,7 +94,7 @@ def chart_data(
     rows_per_label: int | None = None,
     max_events: int = 256,
     pixels: np.ndarray | None = None,
-    speeds: ChartSpeeds | None = None,
+    sweep_speeds: ChartSpeeds | None = None,
 ) -> ChartData:
     """Select chart pixels and pad their events into one array.
 
@@ -107,7 +107,7 @@ def chart_data(
       (evenly spread) to bound the work; `None` keeps all pixels.
     - `max_events`: at most this many events per pixel (the earliest).
     - `pixels`: `(H, W)` bool, only these pixels (with `rows_per_label`: both).
-    - `speeds`: each sweep's mirror speed (:func:`chart_sweep_speeds`): the events
+    - `sweep_speeds`: each sweep's mirror speed (:func:`chart_sweep_speeds`): the events
       are read where the nominal sweep has the band they saw
       (:func:`evhsi_jax.reconstruction.warp_times`); None reads every sweep at the
       rig's speed.
@@ -136,8 +136,8 @@ def chart_data(
     sel = keep.reshape(-1)[pix]
     sub = events.take(np.nonzero(sel)[0])
     lists = None
-    if speeds is not None:
-        lists = speeds.warp(pixel_lists(sub, t_start_us), events.width)
+    if sweep_speeds is not None:
+        lists = sweep_speeds.warp(pixel_lists(sub, t_start_us), events.width)
     batches, counts, _ = group_pixels(
         sub,
         t_start_us=t_start_us,
@@ -728,7 +728,7 @@ def threshold_maps_from_chart(
     t_start_us: int | None = None,
     psf_sigmas_px=PSF_GRID_PX,
     return_psf: bool = False,
-    speeds: ChartSpeeds | None = None,
+    sweep_speeds: ChartSpeeds | None = None,
 ):
     """Per-pixel ON/OFF thresholds with the global parameters fixed (closed form).
 
@@ -753,7 +753,7 @@ def threshold_maps_from_chart(
     estimates nothing: its reference lies across the dark part between sweeps
     (:func:`sweep_first_events`).
 
-    `speeds`: each sweep's mirror speed (:func:`chart_sweep_speeds`; None: the rig's
+    `sweep_speeds`: each sweep's mirror speed (:func:`chart_sweep_speeds`; None: the rig's
     for every sweep).
 
     **Returns:** `(threshold_on, threshold_off)` maps, each `(H, W)`; with
@@ -777,7 +777,7 @@ def threshold_maps_from_chart(
         try:
             d = chart_data(events, chart, rig, t_start_us=t_start_us,
                            rows_per_label=None, max_events=MAP_MAX_EVENTS,
-                           pixels=rows, speeds=speeds)  # fmt: skip
+                           pixels=rows, sweep_speeds=sweep_speeds)  # fmt: skip
         except ValueError:  # no events in these rows
             d = None
         else:

@@ -908,7 +908,9 @@ def calibrate(events: EventStream, chart: Scene, init: Rig, **kw) -> Calibration
     Always computed in float64 — event times of long captures and residuals of a few
     1e-4 in log units over 10⁵–10⁶ events are below float32 resolution, and the
     Levenberg–Marquardt stopping tests need it — and returned in `init`'s dtype. See
-    :func:`_fit_chart_float64` for the arguments.
+    :func:`_fit_chart_float64` for the arguments (among them `sweep_speeds`: by
+    default each chart sweep's mirror speed is measured, and the chart read at them
+    when they differ; None reads every sweep at one speed).
     """
     import time
 
@@ -932,14 +934,15 @@ def calibrate(events: EventStream, chart: Scene, init: Rig, **kw) -> Calibration
 
 
 def _screened_chart_data(
-    events, chart, rig, t_start_us, rows_per_label, from_data, fit_baseline, speeds=None
-):
+    events, chart, rig, t_start_us, rows_per_label, from_data, fit_baseline,
+    sweep_speeds=None,
+):  # fmt: skip
     """The chart's per-pixel event lists with background activity and hot pixels
     screened out (when starting from the data), checked for enough events and
     levels: `(data, screened events, hot-pixel map)`."""
     data = chart_data(
         events, chart, rig, t_start_us=t_start_us, rows_per_label=rows_per_label,
-        speeds=speeds,
+        sweep_speeds=sweep_speeds,
     )  # fmt: skip
     if from_data:
         # Background activity and hot pixels are not in the model: find them with a
@@ -951,7 +954,7 @@ def _screened_chart_data(
         )  # fmt: skip
         data = chart_data(
             events, chart, rig, t_start_us=t_start_us, rows_per_label=rows_per_label,
-            speeds=speeds,
+            sweep_speeds=sweep_speeds,
         )  # fmt: skip
     else:
         hot = np.zeros((events.height, events.width), bool)
@@ -1112,7 +1115,7 @@ def _fit_chart_float64(
     verbose: bool = False,
     maps: bool = True,
     noise: bool = True,
-    speeds: ChartSpeeds | str | None = "measure",
+    sweep_speeds: ChartSpeeds | str | None = "measure",
 ) -> CalibrationResult:
     """Fit thresholds, β, c and per-column τx to a chart capture (then per-pixel maps).
 
@@ -1151,7 +1154,7 @@ def _fit_chart_float64(
     - `noise`: measure the sensor's noise (per-crossing threshold noise, timestamp
       jitter, background rate; False: zeros, as for the band's strip, whose rig
       only gives the band and a start).
-    - `speeds`: each sweep's mirror speed. `"measure"` (default, with `maps` and
+    - `sweep_speeds`: each sweep's mirror speed. `"measure"` (default, with `maps` and
       `noise`): after the fit, :func:`._chart.chart_sweep_speeds` measures them
       with the fitted rig; when they differ by more than the estimate's error (a
       mirror with `sweep_rate_jitter`) the whole calibration is done again with
@@ -1163,6 +1166,11 @@ def _fit_chart_float64(
     """
     call = dict(locals())  # (the arguments: a second fit at the sweeps' own speeds)
     import time
+
+    if isinstance(sweep_speeds, str) and sweep_speeds != "measure":
+        raise ValueError(
+            f"sweep_speeds must be 'measure', None or a ChartSpeeds, not {sweep_speeds!r}"
+        )
 
     t0 = time.perf_counter()
     if fit_band is None:
@@ -1177,7 +1185,7 @@ def _fit_chart_float64(
             max_steps=max_steps, fit_baseline=fit_baseline, from_data=from_data,
             response_degree=response_degree, fit_curvature=fit_curvature,
             fit_photoreceptor=fit_photoreceptor, verbose=verbose,
-            speeds=speeds if isinstance(speeds, ChartSpeeds) else None,
+            sweep_speeds=sweep_speeds if isinstance(sweep_speeds, ChartSpeeds) else None,
         )  # fmt: skip
         fit_band = False
         if fit_photoreceptor and not init.effects.photoreceptor_hz:
@@ -1194,7 +1202,7 @@ def _fit_chart_float64(
     if t_start_us is None:
         t_start_us = int(events.trigger_t_us[0]) if events.trigger_t_us.size else 0
     captured = events
-    given = speeds if isinstance(speeds, ChartSpeeds) else None
+    given = sweep_speeds if isinstance(sweep_speeds, ChartSpeeds) else None
     data, events, hot = _screened_chart_data(
         events, chart, rig, t_start_us, rows_per_label, from_data, fit_baseline, given
     )
@@ -1375,7 +1383,7 @@ def _fit_chart_float64(
             photoreceptor_hz=hz if hz <= PHOTORECEPTOR_IDEAL_HZ else 0.0
         )
     found = given
-    if isinstance(speeds, str) and per_pixel and maps and noise:  # ("measure")
+    if isinstance(sweep_speeds, str) and per_pixel and maps and noise:  # ("measure")
         found = chart_sweep_speeds(
             events, chart, fitted, t_start_us=t_start_us, rows_per_label=rows_per_label
         )
@@ -1384,7 +1392,7 @@ def _fit_chart_float64(
                 print(f"calibrate: the chart's sweeps differ in speed (spread "
                       f"{found.jitter:.2e}): fitted again at each sweep's own")  # fmt: skip
             try:
-                again = _fit_chart_float64(**dict(call, speeds=found))
+                again = _fit_chart_float64(**dict(call, sweep_speeds=found))
             except ValueError as err:  # (NotConverged too): one speed, as before
                 if verbose:
                     print(f"calibrate: the fit at the sweeps' speeds failed ({err})")
@@ -1396,7 +1404,7 @@ def _fit_chart_float64(
         # (a first run, which compiles, held ~0.5 GB of it here).
         release_free_memory()
         on_map, off_map, psf = threshold_maps_from_chart(
-            events, chart, fitted, t_start_us=t_start_us, return_psf=True, speeds=given
+            events, chart, fitted, t_start_us=t_start_us, return_psf=True, sweep_speeds=given
         )
         # The population thresholds: mean over the chart pixels that had such events.
         c_on, c_off = _closed_form_thresholds(_log_steps(fitted, data), data)
@@ -1454,7 +1462,7 @@ def _fit_chart_float64(
 
 
 def _band_from_strip(
-    events: EventStream, chart: Scene, init: Rig, speeds=None, **kw
+    events: EventStream, chart: Scene, init: Rig, sweep_speeds=None, **kw
 ) -> tuple[Rig, bool]:
     """`init` with the band profile of a calibration of the chart's middle
     `BAND_CROP_COLUMNS` columns (all rows; `kw` as :func:`_fit_chart_float64`'s),
@@ -1475,7 +1483,9 @@ def _band_from_strip(
         fit_band=True,
         maps=False,
         noise=False,
-        speeds=None if speeds is None else speeds.columns(x0, x0 + BAND_CROP_COLUMNS),
+        sweep_speeds=None
+        if sweep_speeds is None
+        else sweep_speeds.columns(x0, x0 + BAND_CROP_COLUMNS),
         **kw,
     )
     release_free_memory()  # the strip's compiler memory, before the whole chart's

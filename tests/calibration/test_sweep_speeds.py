@@ -1,13 +1,13 @@
 """A mirror whose speed differs from sweep to sweep, seen in the gray chart: the
 calibration measures each sweep's factor and fits the chart with every sweep read at
-its own speed (`_chart.chart_sweep_speeds`, `_fit._fit_chart_float64(speeds=)`)."""
+its own speed (`_chart.chart_sweep_speeds`, `_fit._fit_chart_float64(sweep_speeds=)`)."""
 
 import jax.random as jr
 import numpy as np
 import pytest
 
 import evhsi_jax as ev
-from evhsi_jax._calibrate import _chart as C
+from evhsi_jax import calibration as C
 
 
 def _robust_spread(f):
@@ -27,7 +27,7 @@ def jittery():
 def fits(jittery):
     chart, _, events, _ = jittery
     each = ev.calibrate(events, chart, ev.Rig())
-    one = ev.calibrate(events, chart, ev.Rig(), speeds=None)  # (as before)
+    one = ev.calibrate(events, chart, ev.Rig(), sweep_speeds=None)  # (as before)
     return each, one
 
 
@@ -47,7 +47,7 @@ def test_the_charts_events_are_read_at_their_sweeps_speed(jittery):
     sp = C.chart_sweep_speeds(events, chart, true, t_start_us=0)
     plain = C.chart_data(events, chart, true, t_start_us=0, rows_per_label=None)
     moved = C.chart_data(events, chart, true, t_start_us=0, rows_per_label=None,
-                         speeds=sp)  # fmt: skip
+                         sweep_speeds=sp)  # fmt: skip
     assert np.array_equal(plain.pixel, moved.pixel)
     assert np.array_equal(plain.mask, moved.mask)
     cols = np.broadcast_to(plain.column[:, None], plain.t_us.shape)
