@@ -107,6 +107,21 @@ def test_the_factor_is_measured_and_helps(jittery):
     np.testing.assert_array_equal(given.sweep_speed, true)
 
 
+def test_a_steady_mirror_shares_one_factor(jittery):
+    """A rig whose `sweep_rate_jitter` is 0 (what `calibrate` writes when the chart's
+    sweeps keep one speed) gives the sweeps of a recording one factor: the mean of
+    their own estimates, shrunk as those are."""
+    cal, _, events, _ = jittery
+    _, own = ev.reconstruct(events, cal, return_info=True)
+    steady = ev.Calibration(cal.rig.replace_host(sweep_rate_jitter=0.0),
+                            cal.threshold_on, cal.threshold_off)  # fmt: skip
+    _, one = ev.reconstruct(events, steady, return_info=True)
+    assert one.sweep_speed[0] == one.sweep_speed[1]
+    assert abs(own.sweep_speed[0] - own.sweep_speed[1]) > 0.003  # (apart, as drawn)
+    # (the shrinkage moves the mean only: the sweeps' own factors keep its result)
+    assert one.sweep_speed[0] == pytest.approx(own.sweep_speed.mean(), abs=1e-12)
+
+
 def test_both_backends_use_the_same_estimate(jittery):
     cal, _, events, info = jittery
     one = _sweep(events, info, cal, 1)
