@@ -908,7 +908,7 @@ def calibrate(events: EventStream, chart: Scene, init: Rig, **kw) -> Calibration
     Always computed in float64 — event times of long captures and residuals of a few
     1e-4 in log units over 10⁵–10⁶ events are below float32 resolution, and the
     Levenberg–Marquardt stopping tests need it — and returned in `init`'s dtype. See
-    :func:`_fit_chart_float64` for the arguments (among them `sweep_speeds`: by
+    :func:`_fit_chart_once` for the arguments (among them `sweep_speeds`: by
     default each chart sweep's mirror speed is measured, and the chart read at them
     when they differ; None reads every sweep at one speed).
     """
@@ -1098,6 +1098,37 @@ def _lm_stage(u, scale, profile, keep, fit, max_steps, verbose, tol):
 
 
 def _fit_chart_float64(
+    events: EventStream, chart: Scene, init: Rig, **kw
+) -> CalibrationResult:
+    """:func:`_fit_chart_once` (the arguments are its), and when it found the chart's
+    sweeps running at speeds that differ by more than their estimate's error, once
+    more with each sweep's events read at its own speed (then the rig's
+    `sweep_rate_jitter` is their spread). Should that second fit fail (it raises a
+    `ValueError`), the chart is fitted at one speed as before and the result says so
+    (:attr:`CalibrationResult.sweep_speed_note`). The second fit runs after the first
+    one's data are released: a full 1280×720 chart's screened stream alone is ~0.6 GB.
+    """
+    import time
+
+    t0 = time.perf_counter()
+    res = _fit_chart_once(events, chart, init, **kw)
+    if not isinstance(res, ChartSpeeds):
+        return res
+    found = res
+    if kw.get("verbose"):
+        print(f"calibrate: the chart's sweeps differ in speed (spread "
+              f"{found.jitter:.2e}): fitted again at each sweep's own")  # fmt: skip
+    try:
+        res = _fit_chart_once(events, chart, init, **dict(kw, sweep_speeds=found))
+    except ValueError as err:  # (NotConverged too): one speed, as before
+        if kw.get("verbose"):
+            print(f"calibrate: the fit at the sweeps' speeds failed ({err})")
+        res = _fit_chart_once(events, chart, init, **dict(kw, sweep_speeds=None))
+        res = dataclasses.replace(res, sweep_speeds=found)
+    return dataclasses.replace(res, seconds=time.perf_counter() - t0)
+
+
+def _fit_chart_once(
     events: EventStream,
     chart: Scene,
     init: Rig,
@@ -1116,7 +1147,7 @@ def _fit_chart_float64(
     maps: bool = True,
     noise: bool = True,
     sweep_speeds: ChartSpeeds | str | None = "measure",
-) -> CalibrationResult:
+) -> CalibrationResult | ChartSpeeds:
     """Fit thresholds, β, c and per-column τx to a chart capture (then per-pixel maps).
 
     **Arguments:**
@@ -1157,14 +1188,14 @@ def _fit_chart_float64(
     - `sweep_speeds`: each sweep's mirror speed. `"measure"` (default, with `maps` and
       `noise`): after the fit, :func:`._chart.chart_sweep_speeds` measures them
       with the fitted rig; when they differ by more than the estimate's error (a
-      mirror with `sweep_rate_jitter`) the whole calibration is done again with
-      every sweep's events read at its own speed, and the rig's
-      `sweep_rate_jitter` is their spread. A :class:`._chart.ChartSpeeds`: read the
-      sweeps at those; None: every sweep at the rig's speed.
+      mirror with `sweep_rate_jitter`) this returns them instead of a result, for
+      :func:`_fit_chart_float64` to fit the chart again at them. A
+      :class:`._chart.ChartSpeeds`: read the sweeps at those; None: every sweep at
+      the rig's speed.
 
-    **Returns:** a :class:`CalibrationResult`.
+    **Returns:** a :class:`CalibrationResult` (or the :class:`._chart.ChartSpeeds`
+    found, above).
     """
-    call = dict(locals())  # (the arguments: a second fit at the sweeps' own speeds)
     import time
 
     if isinstance(sweep_speeds, str) and sweep_speeds != "measure":
@@ -1388,16 +1419,7 @@ def _fit_chart_float64(
             events, chart, fitted, t_start_us=t_start_us, rows_per_label=rows_per_label
         )
         if found is not None and found.significant:
-            if verbose:
-                print(f"calibrate: the chart's sweeps differ in speed (spread "
-                      f"{found.jitter:.2e}): fitted again at each sweep's own")  # fmt: skip
-            try:
-                again = _fit_chart_float64(**dict(call, sweep_speeds=found))
-            except ValueError as err:  # (NotConverged too): one speed, as before
-                if verbose:
-                    print(f"calibrate: the fit at the sweeps' speeds failed ({err})")
-            else:
-                return dataclasses.replace(again, seconds=time.perf_counter() - t0)
+            return found  # (_fit_chart_float64 fits again at them)
     on_map = off_map = psf = None
     if per_pixel and maps:
         # The compiler's freed memory back to the system before the maps' own peak

@@ -109,3 +109,27 @@ def test_too_few_sweeps_are_not_measured():
     chart = ev.load_scene("gray-chart", (12, 8))
     events = ev.simulate(chart, ev.Rig(sweep_rate_jitter=0.003), sweeps=2, key=jr.key(1))
     assert C.chart_sweep_speeds(events, chart, ev.Rig(), t_start_us=0) is None
+
+
+def test_a_failed_fit_at_the_sweeps_speeds_falls_back_to_one(monkeypatch):
+    """Should the fit at the sweeps' own speeds fail, the chart is fitted at one speed
+    as before and the report says why."""
+    from evhsi_jax._calibrate import _fit
+
+    chart = ev.load_scene("gray-chart", (12, 16))
+    events = ev.simulate(chart, ev.Rig(sweep_rate_jitter=0.003), sweeps=6, key=jr.key(2))
+    once = _fit._fit_chart_once
+    tried = []
+
+    def failing(*a, **kw):
+        tried.append(kw.get("sweep_speeds", "measure"))
+        if isinstance(kw.get("sweep_speeds"), C.ChartSpeeds):
+            raise _fit.NotConverged("(a stand-in for a fit that fails)")
+        return once(*a, **kw)
+
+    monkeypatch.setattr(_fit, "_fit_chart_once", failing)
+    res = ev.calibrate(events, chart, ev.Rig())
+    assert [type(t) for t in tried] == [str, C.ChartSpeeds, type(None)]
+    assert res.sweep_speeds is tried[1] and not res.sweep_speeds_used
+    assert res.rig.effects.sweep_rate_jitter == 0.0
+    assert res.calibration.report["sweep_speed"].startswith("one speed: the fit at the 6")
