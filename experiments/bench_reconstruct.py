@@ -66,7 +66,7 @@ def main():
         default="auto",
         choices=["auto", "off"],
         help="reconstruct's sweep_speed (auto: each sweep's mirror speed measured "
-        "from a recording of one sweep; off: the rig's)",
+        "from the recording; off: the rig's)",
     )
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
