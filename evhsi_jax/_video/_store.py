@@ -9,8 +9,9 @@ a damaged chunk fails to read instead of returning wrong numbers):
 - `srgb` (time, y, x, rgb) uint8 preview; `events_per_pixel` (time, y, x) int32;
   `kkt` (time, y, x) float32;
 - coordinates `wavelength` (nm, the channel centres) and `time` (the sweep's start,
-  µs on the recording's clock), with `sweep`, `stop_us`, `events` and
-  `pixels_solved` per time step;
+  µs on the recording's clock), with `sweep`, `stop_us`, `events`,
+  `pixels_solved` and `sweep_speed` (the mirror-speed factor the sweep was read with,
+  NaN when none was measured: `--sweep-speed off`) per time step;
 - root attribute `evhsi`: the run's index (the same object as a sweep folder's
   `index.json`, see :mod:`evhsi_jax._video._stream`); consolidated metadata, refreshed with
   the index (at most once a second while running, and at the end).
@@ -43,6 +44,9 @@ _PER_PIXEL = (  # name, dtype, trailing axes
     ("kkt", np.float32, ("y", "x")),
 )
 _PER_SWEEP = ("sweep", "stop_us", "events", "pixels_solved")
+#: Per-sweep float arrays (NaN: none). A store written before one existed lacks it,
+#: and keeps lacking it when resumed (its lengths must follow `time`).
+_PER_SWEEP_FLOAT = ("sweep_speed",)
 
 
 def is_video_store(path) -> bool:
@@ -159,9 +163,12 @@ class VideoStore:
         if n == 0:
             return []
         cols = {k: np.asarray(self.group[k][:n]) for k in _PER_SWEEP}
+        floats = {k: np.asarray(self.group[k][:n]) for k in _PER_SWEEP_FLOAT
+                  if k in self.group}  # fmt: skip
         start = np.asarray(self.group["time"][:n])
-        return [
-            {
+        out = []
+        for i in range(n):
+            entry = {
                 "sweep": int(cols["sweep"][i]),
                 "file": None,
                 "position": i,
@@ -171,8 +178,9 @@ class VideoStore:
                 "pixels_solved": int(cols["pixels_solved"][i]),
                 "seconds": None,
             }
-            for i in range(n)
-        ]
+            entry.update({k: float(v[i]) for k, v in floats.items() if np.isfinite(v[i])})
+            out.append(entry)
+        return out
 
     def _create(self, h: int, w: int, wavelengths_nm) -> None:
         g = self.group
@@ -195,6 +203,9 @@ class VideoStore:
         for name in (*_PER_SWEEP, "time"):
             g.create_array(name, shape=(0,), chunks=(4096,), dtype=np.int64,
                            dimension_names=("time",), overwrite=True)  # fmt: skip
+        for name in _PER_SWEEP_FLOAT:
+            g.create_array(name, shape=(0,), chunks=(4096,), dtype=np.float64,
+                           dimension_names=("time",), overwrite=True)  # fmt: skip
         g["reflectance"].attrs.update({"long_name": "reflectance", "units": "1"})
         g["time"].attrs.update(
             {"long_name": "sweep start", "units": "microseconds"}
@@ -216,6 +227,9 @@ class VideoStore:
             self.group[name].append(values[name][None], axis=0)
         for name in _PER_SWEEP:
             self.group[name].append(np.array([entry[name]], np.int64))
+        for name in _PER_SWEEP_FLOAT:
+            if name in self.group:
+                self.group[name].append(np.array([entry.get(name, np.nan)], np.float64))
         self.group["time"].append(np.array([entry["start_us"]], np.int64))
 
     def prepare(self, h: int, w: int, wavelengths_nm) -> None:

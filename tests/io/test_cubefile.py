@@ -11,6 +11,7 @@ import xarray as xr
 import zarr
 
 import evhsi_jax as ev
+from evhsi_jax._video._store import VideoStore
 from evhsi_jax.cli import main
 
 H, W = 4, 6
@@ -164,6 +165,10 @@ def test_video_store_equals_the_folder_and_resumes(capture, tmp_path):
         assert np.array_equal(a["cube"], b["cube"])
     for i, (_, a) in enumerate(folder):
         assert np.array_equal(ds["reflectance"].values[i], a["cube"])
+    # each sweep's mirror-speed factor, as the folder's index has it
+    speeds = [e["sweep_speed"] for e, _ in folder]
+    assert np.array_equal(ds["sweep_speed"].values, speeds)
+    assert [e["sweep_speed"] for e in VideoStore(tmp_path / "v.zarr").entries()] == speeds
     # A run killed after writing part of a third sweep: arrays longer than `time`,
     # a temporary file of zarr's. The next run cuts back, cleans up, skips the rest.
     g = zarr.open_group(str(tmp_path / "v.zarr"), mode="a")
@@ -176,6 +181,7 @@ def test_video_store_equals_the_folder_and_resumes(capture, tmp_path):
     assert main(["convert", str(tmp_path / "dir"), str(tmp_path / "c.zarr")]) == 0
     conv = xr.open_zarr(tmp_path / "c.zarr")
     assert np.array_equal(conv["reflectance"].values, ds["reflectance"].values)
+    assert np.array_equal(conv["sweep_speed"].values, speeds)
     assert main(["convert", str(tmp_path / "v.zarr"), str(tmp_path / "s1.hdr"),
                  "--sweep", "1"]) == 0  # fmt: skip
     assert np.array_equal(ev.load_cube(tmp_path / "s1.hdr")["cube"], folder[1][1]["cube"])
