@@ -247,6 +247,10 @@ def test_cli_calibrate_writes_a_file_reconstruct_reads(tmp_path, capture):
     cfg = json.loads((tmp_path / "c.json").read_text())
     assert cfg["threshold_map"] == "c_thresholds.npz"
     assert cfg["band_profile"] is not None and cfg["calibration"]["band"] == "profile fitted"
+    # Two sweeps: the mirror's speed per sweep is not measured (3 or more are needed).
+    assert "mirror speed" in out.stdout and "not measured (one speed)" in out.stdout
+    assert cfg["calibration"]["sweep_speed"] == "not measured (one speed)"
+    assert cfg["calibration"]["chart_sweep_speeds"] is None
     cal = ev.load_calibration(tmp_path / "c.json")
     on = cal.threshold_on
     assert on.shape == (H, W) and cal.hot_pixels.shape == (H, W)

@@ -61,9 +61,16 @@ def test_the_charts_events_are_read_at_their_sweeps_speed(jittery):
     assert np.array_equal(crop.factors, sp.factors)
 
 
-def test_a_jittery_mirrors_chart_is_fitted_at_each_sweeps_speed(jittery, fits):
+def test_a_jittery_mirrors_chart_is_fitted_at_each_sweeps_speed(jittery, fits, tmp_path):
     chart, true, events, info = jittery
     each, one = fits
+    # The file keeps what was measured: the spread as the rig's key, the factors.
+    ev.calibration.save_calibration(tmp_path / "c.json", each)
+    back = ev.load_calibration(tmp_path / "c.json")
+    assert back.rig.effects.sweep_rate_jitter == pytest.approx(
+        float(each.rig.effects.sweep_rate_jitter)
+    )
+    assert len(back.report["chart_sweep_speeds"]) == 8
     assert each.sweep_speeds_used and not one.sweep_speeds_used
     truth = info.speed_factor / info.speed_factor.mean()
     np.testing.assert_allclose(each.sweep_speeds.factors, truth, atol=3e-4)
