@@ -197,7 +197,7 @@ def sweep_first_events(data: ChartData, period_us: float) -> np.ndarray:
 #: factor is common to a sweep's pixels, and 2048 of them measure it to ~1e-5 on an
 #: ideal sensor (32×48 chart).
 SPEED_CHART_PIXELS = 2048
-#: Spacing of the three factors whose parabolas give each sweep's (two rounds).
+#: Spacing of the three factors whose parabolas give each sweep's (in rounds).
 SPEED_CHART_STEP = 0.002
 #: Rounds of parabolas at most (each around the last's answers, which moved by a step
 #: at most); they stop when no factor moved by more than `SPEED_CHART_TOL`.
@@ -264,6 +264,17 @@ class ChartSpeeds:
         return dataclasses.replace(self, offsets_us=self.offsets_us[x0:x1])
 
 
+def _padded_lists(d: ChartData) -> ChartData:
+    """`d` with its event slots padded to a power of two (at least 8, masked): the
+    log steps' programs then see few shapes across bands of rows and captures."""
+    k = max(8, 1 << int(d.t_us.shape[1] - 1).bit_length())
+    pad = ((0, 0), (0, k - d.t_us.shape[1]))
+    return dataclasses.replace(
+        d, t_us=np.pad(d.t_us, pad), polarity=np.pad(d.polarity, pad),
+        mask=np.pad(d.mask, pad),
+    )  # fmt: skip
+
+
 def chart_sweep_speeds(
     events: EventStream,
     chart: Scene,
@@ -283,7 +294,8 @@ def chart_sweep_speeds(
     best: with the pixels' own thresholds fixed (closed form at $f = 1$), the capped
     sum of squared residuals of each sweep (:func:`_own_residuals`, capped at
     `SPEED_CHART_CAP`) at three factors `SPEED_CHART_STEP` apart, the vertex of each
-    sweep's parabola, twice (the second round around the first's answers). Up to
+    sweep's parabola (a step at most), in rounds around the last round's answers
+    until they stop moving (`SPEED_CHART_ROUNDS`, `SPEED_CHART_TOL`). Up to
     `SPEED_CHART_PIXELS` chart pixels, up to `MAP_MAX_EVENTS` events each; each
     sweep's first event is left out (:func:`sweep_first_events`).
 
@@ -303,12 +315,8 @@ def chart_sweep_speeds(
         data = data.subset(
             np.linspace(0, n_px - 1, SPEED_CHART_PIXELS).round().astype(np.int64)
         )
-    k = max(8, 1 << int(data.t_us.shape[1] - 1).bit_length())  # (few shapes)
-    pad = ((0, 0), (0, k - data.t_us.shape[1]))
-    data = dataclasses.replace(
-        data, t_us=np.pad(data.t_us, pad), polarity=np.pad(data.polarity, pad),
-        mask=np.pad(data.mask, pad) & ~np.pad(sweep_first_events(data, period), pad),
-    )  # fmt: skip
+    data = _padded_lists(data)
+    data = dataclasses.replace(data, mask=data.mask & ~sweep_first_events(data, period))
     t = np.asarray(data.t_us, np.float64)
     sweep = np.floor(t / period).astype(np.int64)
     on = data.mask & (sweep >= 0)
@@ -322,12 +330,17 @@ def chart_sweep_speeds(
     offsets = np.asarray(rig.column_offsets_us, np.float64)
     columns = np.broadcast_to(data.column[:, None], t.shape).reshape(-1)
     overlap = band_overlap(rig)
-    c_on, c_off = _closed_form_thresholds(_log_steps(rig, data, overlap=overlap), data)
+    at_one = _log_steps(rig, data, overlap=overlap)  # (the recorded times)
+    c_on, c_off = _closed_form_thresholds(at_one, data)
 
-    def misfit(factors):  # (sweeps,) capped sum of squares, and the events counted
-        moved = warp_times(t.reshape(-1), columns, offsets, period, factors)
-        view = dataclasses.replace(data, t_us=moved.reshape(t.shape))
-        r = _own_residuals(_log_steps(rig, view, overlap=overlap), data, c_on, c_off)
+    def misfit(factors):  # (sweeps,) each sweep's capped sum of squared residuals
+        if np.all(factors == 1.0):  # (the first round's middle: the steps above)
+            steps = at_one
+        else:
+            moved = warp_times(t.reshape(-1), columns, offsets, period, factors)
+            view = dataclasses.replace(data, t_us=moved.reshape(t.shape))
+            steps = _log_steps(rig, view, overlap=overlap)
+        r = _own_residuals(steps, data, c_on, c_off)
         ok = on & np.isfinite(r)
         sq = np.minimum(r[ok] ** 2, SPEED_CHART_CAP**2)
         return np.bincount(sweep[ok], sq, minlength=n_sweeps)[:n_sweeps]
@@ -781,12 +794,7 @@ def threshold_maps_from_chart(
         except ValueError:  # no events in these rows
             d = None
         else:
-            k = max(8, 1 << int(d.t_us.shape[1] - 1).bit_length())  # few shapes
-            pad = ((0, 0), (0, k - d.t_us.shape[1]))
-            d = dataclasses.replace(
-                d, t_us=np.pad(d.t_us, pad), polarity=np.pad(d.polarity, pad),
-                mask=np.pad(d.mask, pad),
-            )  # fmt: skip
+            d = _padded_lists(d)
         last[:] = [(y0, y1), d]
         return d
 

@@ -1204,6 +1204,7 @@ def _fit_chart_once(
         )
 
     t0 = time.perf_counter()
+    given = sweep_speeds if isinstance(sweep_speeds, ChartSpeeds) else None
     if fit_band is None:
         # (Not with one threshold pair for all pixels: the band's shape then chases
         # the pixels' threshold spread.)
@@ -1215,8 +1216,7 @@ def _fit_chart_once(
             events, chart, init, t_start_us=t_start_us, rows_per_label=rows_per_label,
             max_steps=max_steps, fit_baseline=fit_baseline, from_data=from_data,
             response_degree=response_degree, fit_curvature=fit_curvature,
-            fit_photoreceptor=fit_photoreceptor, verbose=verbose,
-            sweep_speeds=sweep_speeds if isinstance(sweep_speeds, ChartSpeeds) else None,
+            fit_photoreceptor=fit_photoreceptor, verbose=verbose, sweep_speeds=given,
         )  # fmt: skip
         fit_band = False
         if fit_photoreceptor and not init.effects.photoreceptor_hz:
@@ -1233,7 +1233,6 @@ def _fit_chart_once(
     if t_start_us is None:
         t_start_us = int(events.trigger_t_us[0]) if events.trigger_t_us.size else 0
     captured = events
-    given = sweep_speeds if isinstance(sweep_speeds, ChartSpeeds) else None
     data, events, hot = _screened_chart_data(
         events, chart, rig, t_start_us, rows_per_label, from_data, fit_baseline, given
     )
