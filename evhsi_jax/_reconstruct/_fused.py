@@ -50,6 +50,7 @@ from .._model import Rig, trim_rows
 from ._problem import (
     INT_TARGETS,
     ProblemConfig,
+    dark_strength,
     lit_interval_us,
     spectral_prior_matrix,
 )
@@ -150,7 +151,8 @@ class FusedProblem:
         # The noise model [σ_C, σ_t, d_w] and the reweighting's settings.
         nz = np.zeros(3) if noise is None else np.asarray(noise, np.float64)
         par[19:29] = [
-            nz[0], nz[1], nz[2], cfg.noise_floor, cfg.alpha_dark, cfg.robust_c,
+            nz[0], nz[1], nz[2], cfg.noise_floor, dark_strength(sweeps, cfg),
+            cfg.robust_c,
             cfg.robust_reject, f(rig.baseline_rel), f(rig.log_eps), cfg.lowpass_tol,
         ]  # fmt: skip
         # Reciprocals of the period and of the grid's half width: the band lookups

@@ -1969,7 +1969,9 @@ def solve_pixels(
                     wn[i] = math.sqrt(ideal / (ideal + var))
                     w *= wn[i]
                     sigma[i] = math.sqrt(ideal)
-                    share += var / (ideal + var)
+                    # (threshold noise alone: `_problem.pixel_system`'s share)
+                    sc2 = par[P_SIG_C] * par[P_SIG_C]
+                    share += sc2 / (ideal + sc2)
                 b0, f0 = bt[i], ft[i]
                 b1, f1 = (b_zero, f_zero) if i == 0 else (be[i - 1], fe[i - 1])
                 ri = evr[i]

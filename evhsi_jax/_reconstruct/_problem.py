@@ -113,11 +113,16 @@ class ProblemConfig:
       priors' weights above were tuned with rows of about this accuracy.
     - `alpha_dark`: weight of a first-difference prior on channels the rig barely
       lights (weight ∝ peak light / channel light − 1, times the mean share
-      $v_k/(q_k + v_k)$ of the event rows' variance that is sensor noise), used with
-      a noise model only.
+      $v_k/(q_k + v_k)$ of the event rows' variance that threshold noise would take),
+      used with a noise model only, for solves of at most `dark_sweeps` sweeps
+      (:func:`dark_strength`).
+    - `dark_sweeps`: the dark-channel prior is used for solves of at most this many
+      sweeps (1: one sweep, and each sweep of a per-sweep run; since the
+      twenty-fifth session, before every length).
       `noise_floor` and `alpha_dark` were chosen on the training scene `tcs` with
-      per-crossing threshold noise 0.01 (README "Sensor model"), never on the
-      evaluation scenes.
+      per-crossing threshold noise 0.01 (README "Sensor model"), `dark_sweeps` and the
+      share on `tcs` with threshold noise 0.0025–0.02 and timestamp jitter 2–15 µs
+      (`experiments/dark_prior.py`), never on the evaluation scenes.
     - `robust_steps`: reweighting passes (Huber weights on the event rows) after the
       first solve when a noise model is given; 0 turns the robust loss off.
     - `lowpass_passes`: at most this many Gauss–Newton passes of the linearised
@@ -167,6 +172,7 @@ class ProblemConfig:
     lookup_order: int = 1
     noise_floor: float = 3e-4
     alpha_dark: float = 1e-6
+    dark_sweeps: int = 1
     robust_steps: int = 2
     lowpass_passes: int = 3
     lowpass_tol: float = 0.2
@@ -190,6 +196,8 @@ class ProblemConfig:
             raise ValueError(f"spec_kind must be 'dct' or 'd2', got {self.spec_kind!r}")
         if not 0 < self.m_start_frac <= 1:
             raise ValueError("m_start_frac must be in (0, 1]")
+        if self.alpha_dark < 0 or self.dark_sweeps < 0:
+            raise ValueError("alpha_dark and dark_sweeps must be >= 0")
         if self.noise_floor <= 0 or self.robust_c <= 0 or self.robust_steps < 0:
             raise ValueError("noise_floor and robust_c must be > 0, robust_steps >= 0")
         if not self.robust_reject > self.robust_c:
@@ -358,9 +366,13 @@ def pixel_system(
         w_noise = jnp.sqrt(ideal / (ideal + var))
         w_ev = w_ev * w_noise
         sigma_ev = jnp.sqrt(ideal)
-        # How much of the rows' information the noise took (0 ideal, → 1 noisy).
+        # How much of the rows' information threshold noise alone would take (0
+        # ideal, → 1 noisy): the dark-channel prior's share. Timestamp jitter does not
+        # count: it is small where the light changes slowly, which is where the dim
+        # channels are read (`dark_strength`).
         n_ev = jnp.maximum(jnp.sum(mask), 1).astype(dtype)
-        noisy = jnp.sum(jnp.where(mask, var / (ideal + var), 0.0)) / n_ev
+        var_c = noise[0] ** 2
+        noisy = jnp.sum(jnp.where(mask, var_c / (ideal + var_c), 0.0)) / n_ev
     ev_rows = (
         jnp.concatenate(
             [a_ev - ratio[:, None] * a_ref, (base * (1.0 - ratio))[:, None]], axis=1
@@ -457,7 +469,7 @@ def pixel_system(
     int_rows = jnp.concatenate([int_x, int_c[:, None]], axis=1) * w_int[:, None]
 
     spec_w = cfg.alpha_spec / (s_hat**2 if norm else 1.0)
-    if noise is not None and cfg.alpha_dark > 0:
+    if noise is not None and cfg.alpha_dark > 0 and sweeps <= cfg.dark_sweeps:
         # Channels the rig barely lights carry little data; with noisy rows their
         # values would follow the noise. Tie each to its neighbour with a weight that
         # grows as the channel's light falls (0 for a fully lit channel) and with the
@@ -466,7 +478,7 @@ def pixel_system(
         dim = jnp.minimum(jnp.max(light) / jnp.maximum(light, 1e-12) - 1.0, 1e4)
         # Its rows (x_{c+1} − x_c)·wd_c add a tridiagonal term to the Gram matrix
         # (`dark_gram`): kept as the weights wd², not as M−1 dense rows.
-        dark = cfg.alpha_dark * noisy * 0.5 * (dim[1:] + dim[:-1]) / s_hat**2
+        dark = dark_strength(sweeps, cfg) * noisy * 0.5 * (dim[1:] + dim[:-1]) / s_hat**2
     else:
         dark = None
     if return_rows:
@@ -474,6 +486,24 @@ def pixel_system(
     rows = jnp.concatenate([ev_rows, int_rows], axis=0)
     gram = dark_gram(rows.T @ rows, dark)
     return _system(cfg, m, gram, spec_w, s_hat, return_gram)
+
+
+def dark_strength(sweeps: int, cfg: ProblemConfig) -> float:
+    """The dark-channel prior's weight for a solve of `sweeps` sweeps:
+    `cfg.alpha_dark` for up to `cfg.dark_sweeps` sweeps (default 1), 0 for more.
+
+    The prior ties each dim channel to its neighbour so that one sweep's noisy rows
+    do not carry it away; it also pulls real spectral detail flat. Each pixel's share
+    of it is the share of its rows' variance that threshold noise alone would take
+    (:func:`pixel_system`): timestamp jitter does not count, as it is small where the
+    light changes slowly, which is where the dim channels are read. Both since the
+    twenty-fifth session (before, every noisy solve of any length got it, jitter
+    counted): on the training scene `tcs` (true rig and thresholds, 32×48) a
+    recording of two sweeps with threshold noise 0.01 reached 3.3° SAM without it
+    against 4.7° with it, and one sweep with 2–5 µs of jitter 1.9–2.7° against
+    3.5–4.4° (README, Real sensors, "The dark-channel prior's strength";
+    `experiments/dark_prior.py`)."""
+    return cfg.alpha_dark if sweeps <= cfg.dark_sweeps else 0.0
 
 
 def dark_gram(gram, dark):
