@@ -473,7 +473,7 @@ def pixel_system(
         # Channels the rig barely lights carry little data; with noisy rows their
         # values would follow the noise. Tie each to its neighbour with a weight that
         # grows as the channel's light falls (0 for a fully lit channel) and with the
-        # share of the rows' information the noise took (0 for an ideal sensor).
+        # share of the rows' variance threshold noise takes (0 for an ideal sensor).
         light = jnp.max(table.values, axis=0)
         dim = jnp.minimum(jnp.max(light) / jnp.maximum(light, 1e-12) - 1.0, 1e4)
         # Its rows (x_{c+1} − x_c)·wd_c add a tridiagonal term to the Gram matrix
@@ -499,9 +499,9 @@ def dark_strength(sweeps: int, cfg: ProblemConfig) -> float:
     light changes slowly, which is where the dim channels are read. Both since the
     twenty-fifth session (before, every noisy solve of any length got it, jitter
     counted): on the training scene `tcs` (true rig and thresholds, 32×48) a
-    recording of two sweeps with threshold noise 0.01 reached 3.3° SAM without it
+    recording of two sweeps with threshold noise 0.01 reached 3.2° SAM without it
     against 4.7° with it, and one sweep with 2–5 µs of jitter 1.9–2.7° against
-    3.5–4.4° (README, Real sensors, "The dark-channel prior's strength";
+    3.4–4.5° (README, Real sensors, "The dark-channel prior's strength";
     `experiments/dark_prior.py`)."""
     return cfg.alpha_dark if sweeps <= cfg.dark_sweeps else 0.0
 
