@@ -1957,6 +1957,7 @@ def solve_pixels(
             b_zero, f_zero = _band_at(0.0, phase, off, par, ntab)
             # Event rows [a(τ) - e^{σC} a(ρ); c'(1 - e^{σC})] / Î (× noise weight), kept.
             share = 0.0
+            var_c = par[P_SIG_C] ** 2
             for i in range(k):
                 ratio = math.exp(step[i])
                 w = 1.0 / i_hat[i] if norm else 1.0
@@ -1965,13 +1966,12 @@ def solve_pixels(
                     gap = max(tt[i] - t_ref, 1.0)
                     slope = abs(step[i]) / gap
                     ideal = par[P_FLOOR] ** 2 + slope * slope / 6.0
-                    var = par[P_SIG_C] ** 2 + 2.0 * par[P_SIG_T] ** 2 * slope * slope
+                    var = var_c + 2.0 * par[P_SIG_T] ** 2 * slope * slope
                     wn[i] = math.sqrt(ideal / (ideal + var))
                     w *= wn[i]
                     sigma[i] = math.sqrt(ideal)
                     # (threshold noise alone: `_problem.pixel_system`'s share)
-                    sc2 = par[P_SIG_C] * par[P_SIG_C]
-                    share += sc2 / (ideal + sc2)
+                    share += var_c / (ideal + var_c)
                 b0, f0 = bt[i], ft[i]
                 b1, f1 = (b_zero, f_zero) if i == 0 else (be[i - 1], fe[i - 1])
                 ri = evr[i]

@@ -362,7 +362,8 @@ def pixel_system(
     if noise is not None:
         slope = jnp.abs(step) / gap
         ideal = cfg.noise_floor**2 + slope**2 / 6.0  # floor + timestamp rounding
-        var = noise[0] ** 2 + 2.0 * noise[1] ** 2 * slope**2
+        var_c = noise[0] ** 2
+        var = var_c + 2.0 * noise[1] ** 2 * slope**2
         w_noise = jnp.sqrt(ideal / (ideal + var))
         w_ev = w_ev * w_noise
         sigma_ev = jnp.sqrt(ideal)
@@ -371,7 +372,6 @@ def pixel_system(
         # count: it is small where the light changes slowly, which is where the dim
         # channels are read (`dark_strength`).
         n_ev = jnp.maximum(jnp.sum(mask), 1).astype(dtype)
-        var_c = noise[0] ** 2
         noisy = jnp.sum(jnp.where(mask, var_c / (ideal + var_c), 0.0)) / n_ev
     ev_rows = (
         jnp.concatenate(
@@ -469,7 +469,8 @@ def pixel_system(
     int_rows = jnp.concatenate([int_x, int_c[:, None]], axis=1) * w_int[:, None]
 
     spec_w = cfg.alpha_spec / (s_hat**2 if norm else 1.0)
-    if noise is not None and cfg.alpha_dark > 0 and sweeps <= cfg.dark_sweeps:
+    strength = dark_strength(sweeps, cfg)
+    if noise is not None and strength > 0:
         # Channels the rig barely lights carry little data; with noisy rows their
         # values would follow the noise. Tie each to its neighbour with a weight that
         # grows as the channel's light falls (0 for a fully lit channel) and with the
@@ -478,7 +479,7 @@ def pixel_system(
         dim = jnp.minimum(jnp.max(light) / jnp.maximum(light, 1e-12) - 1.0, 1e4)
         # Its rows (x_{c+1} − x_c)·wd_c add a tridiagonal term to the Gram matrix
         # (`dark_gram`): kept as the weights wd², not as M−1 dense rows.
-        dark = dark_strength(sweeps, cfg) * noisy * 0.5 * (dim[1:] + dim[:-1]) / s_hat**2
+        dark = strength * noisy * 0.5 * (dim[1:] + dim[:-1]) / s_hat**2
     else:
         dark = None
     if return_rows:
