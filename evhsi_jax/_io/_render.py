@@ -63,7 +63,11 @@ def cube_to_srgb(cube, wavelengths_nm) -> np.ndarray:
         )
     weights = _xyz_weights(tuple(np.round(wl, 6)))
     flat = cube.reshape(-1, wl.size)
-    xyz = (flat @ weights.astype(cube.dtype)).astype(np.float64)
+    # A non-finite channel makes its pixel's product non-finite (weighed again below);
+    # whether the BLAS kernel also raises the invalid flag depends on the CPU (AVX2
+    # OpenBLAS kernels do, AVX-512 ones did not), so the flag is not a signal here.
+    with np.errstate(invalid="ignore", over="ignore"):
+        xyz = (flat @ weights.astype(cube.dtype)).astype(np.float64)
     bad = ~np.isfinite(xyz).all(axis=1)
     if bad.any():
         xyz[bad] = np.nan_to_num(flat[bad].astype(np.float64)) @ weights

@@ -178,8 +178,13 @@ def test_device_grouping_gives_the_host_batches(capture, monkeypatch):
     (c_host, i_host), (c_dev, i_dev) = per_place
     assert i_host.sweep_speed[0] != 1.0
     np.testing.assert_array_equal(i_host.sweep_speed, i_dev.sweep_speed)
-    assert ev.metrics.sam_map_deg(c_host, c_dev).max() < 0.1  # (the equal accuracy)
-    np.testing.assert_allclose(c_host, c_dev, atol=1e-3)
+    # One float32 ulp of an event's time moves an ill-conditioned pixel of this float32
+    # JAX path by up to ~0.1° (on an AVX2 CPU one of the 96 pixels moved 0.12°, and
+    # the device's answer was the nearer to the fused backend's float64 one: 0.017°
+    # against the host's 0.110°); the rest stay at the rounding level.
+    sam = ev.metrics.sam_map_deg(c_host, c_dev)
+    assert sam.max() < 0.25 and np.median(sam) < 0.01 and (sam < 0.1).mean() >= 0.95
+    np.testing.assert_allclose(c_host, c_dev, atol=3e-3)  # that pixel's red end: 1.3e-3
 
 
 def test_device_finish_is_the_hosts():
