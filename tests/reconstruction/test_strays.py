@@ -137,6 +137,11 @@ def test_undropped():
     )
 
 
+# ~100 s on a cold cache (its float32 JAX programs compile for ~70 s), 25 s warm. The
+# JAX path's search also runs in every `make test` as the float64 reference of
+# test_fused.py::test_noise_aware_fused_equals_float64_jax (stray events found there,
+# cubes within 0.05° of the fused kernel's), so this float32 check is a slow one.
+@pytest.mark.slow
 def test_the_jax_backend_finds_the_same_strays(background):
     """The JAX path (`_chunk_fit`, `_solve_variants_jax`) flags and repairs the same
     pixels as the fused kernel, to the same answers within float32 rounding."""
