@@ -483,7 +483,8 @@ def _theta(u_flat, unravel, scale):
 
 
 def _table_tangents(u_flat, unravel, scale, fit: _FitData, tans, band_size: int):
-    """The tables' tangents (:func:`_fit_tables`) along each row of `tans`.
+    """The tables (:func:`_fit_tables`) at `u_flat` and their tangents along each row
+    of `tans`: `(tables, d_tables)`.
 
     With the band fitted (its `band_size` parameters first in `u_flat`, and the unit
     tangents of `tans`' first rows), the traces are a product bilinear in the band's
@@ -500,14 +501,14 @@ def _table_tangents(u_flat, unravel, scale, fit: _FitData, tans, band_size: int)
         return _fit_tables(_theta(uf, unravel, scale), fit)
 
     if band_size == 0:
-        _, lin = jax.linearize(tables, u_flat)
-        return jax.lax.map(lin, tans)
+        primal, lin = jax.linearize(tables, u_flat)
+        return primal, jax.lax.map(lin, tans)
     head, tail = u_flat[:band_size], u_flat[band_size:]
-    _, lin_b = jax.linearize(lambda b: tables(jnp.concatenate([b, tail])), head)
+    primal, lin_b = jax.linearize(lambda b: tables(jnp.concatenate([b, tail])), head)
     _, lin_r = jax.linearize(lambda r: tables(jnp.concatenate([head, r])), tail)
     d_b = jax.lax.map(lin_b, tans[:band_size, :band_size])
     d_r = jax.lax.map(lin_r, tans[band_size:, band_size:])
-    return jax.tree.map(lambda a, b: jnp.concatenate([a, b]), d_b, d_r)
+    return primal, jax.tree.map(lambda a, b: jnp.concatenate([a, b]), d_b, d_r)
 
 
 def _normal_equations(
@@ -531,8 +532,7 @@ def _normal_equations(
     g = p - w  # the globals come first in the flattened parameters (_tau_positions)
     tans = jnp.zeros((g + 1, p), u_flat.dtype)
     tans = tans.at[np.arange(g), np.arange(g)].set(1.0).at[g, tau_idx].set(1.0)
-    d_tables = _table_tangents(u_flat, unravel, scale, fit, tans, band_size)
-    tables = _fit_tables(_theta(u_flat, unravel, scale), fit)
+    tables, d_tables = _table_tangents(u_flat, unravel, scale, fit, tans, band_size)
     dtype = u_flat.dtype
 
     def body(carry, xs):
