@@ -558,6 +558,21 @@ def system_from_rows(cfg: ProblemConfig, rows: PixelRows, row_weight=None):
     return _system(cfg, m, gram, rows.spec_weight, rows.s_hat, False)
 
 
+#: How :func:`_lowpass_rows` runs the filter's recursion: "auto" — a sequential scan
+#: on a CPU, an associative scan elsewhere (a GPU runs its log-depth levels in
+#: parallel); "sequential" or "associative" to choose. On 2 CPU cores (2026-12-07,
+#: JAX backend, 48×72 ColorChecker, `realistic` preset, float32) the sequential scan
+#: compiled in 49 s instead of 78 s and ran in 16.6 s instead of 25.3 s per call,
+#: with the same PSNR to 1e-5 dB.
+LOWPASS_SCAN = "auto"
+
+
+def _sequential_scan() -> bool:
+    if LOWPASS_SCAN == "auto":
+        return jax.default_backend() == "cpu"
+    return LOWPASS_SCAN == "sequential"
+
+
 def _lowpass_rows(rig, a_at, x0, d_w, t_us, step, t0_phase_us, sweeps):
     r"""Event rows of the low-passed sensor, linearised at `x0`, in log units.
 
@@ -590,6 +605,14 @@ def _lowpass_rows(rig, a_at, x0, d_w, t_us, step, t0_phase_us, sweeps):
     alpha = jnp.exp(-dtw * inten).at[0].set(0.0)
 
     def filtered(inputs):  # the filter's recursion over the grid, per column
+        if _sequential_scan():
+
+            def step(y, a_in):
+                y = a_in[0] * y + a_in[1]
+                return y, y
+
+            return jax.lax.scan(step, jnp.zeros_like(inputs[0]), (alpha, inputs))[1]
+
         def combine(left, right):
             return left[0] * right[0], right[0][:, None] * left[1] + right[1]
 

@@ -385,6 +385,41 @@ def test_lowpass_rows_are_the_filters_jacobian():
     np.testing.assert_allclose(rows[:, :m], jac, rtol=0, atol=1e-9 * scale)
 
 
+def test_lowpass_rows_scans_agree(monkeypatch):
+    """The filter's recursion as a sequential scan (a CPU's default) and as an
+    associative scan (a GPU's) give the same rows (float64, to rounding)."""
+    import jax
+
+    from evhsi_jax._reconstruct import _problem
+
+    with jax.enable_x64(True):
+        rig = ev.Rig(photoreceptor_hz=3000.0).astype(np.float64)
+        m = rig.channels
+        period = float(rig.period_us)
+        rng = np.random.default_rng(4)
+        centres = jnp.linspace(0.1 * period, 0.9 * period, m)
+
+        def a_at(t):
+            return 0.6 * jnp.exp(-0.5 * ((t[:, None] - centres) / (0.01 * period)) ** 2)
+
+        x0 = jnp.asarray(rng.uniform(0.05, 0.9, m))
+        t_us = jnp.asarray(np.sort(rng.uniform(0.15, 0.85, 9)) * period)
+        step = jnp.asarray(rng.choice([-0.15, 0.15], 9))
+        rows = {}
+        for mode in ("sequential", "associative"):
+            monkeypatch.setattr(_problem, "LOWPASS_SCAN", mode)
+            rows[mode] = np.asarray(
+                jax.jit(lambda x: _problem._lowpass_rows(
+                    rig, a_at, x, 500.0, t_us, step, 0.0, 1))(x0)
+            )  # fmt: skip
+    assert _problem._sequential_scan() is False  # (the patched value)
+    scale = np.abs(rows["sequential"]).max()
+    assert scale > 0
+    np.testing.assert_allclose(
+        rows["sequential"], rows["associative"], rtol=0, atol=1e-12 * scale
+    )
+
+
 def test_photoreceptor_passes_run_on_recordings_longer_than_four_sweeps():
     """The Gauss–Newton passes of the photoreceptor model run however many sweeps a
     static recording has. Until 2026-11-29 a recording of more than 4 sweeps kept the
