@@ -161,3 +161,47 @@ def test_reconstruction_through_stored_programs(cache_on, monkeypatch):
     direct = ev.reconstruct(events, rig, backend="jax")
     np.testing.assert_array_equal(first, direct)
     np.testing.assert_array_equal(second, direct)
+
+
+def test_a_kernel_compiling_elsewhere_is_waited_for(tmp_path):
+    """A numba kernel's compilation holds a lock file beside its cache entry
+    (`_numba._with_compile_lock`): a process that needs the kernel while another
+    holds it waits, then compiles or loads it — processes started together on a
+    fresh install compile each kernel once."""
+    import fcntl
+    import os
+    import subprocess
+    import sys
+    import time
+
+    pytest.importorskip("numba")
+    (tmp_path / "kmod.py").write_text(
+        "from evhsi_jax._base import njit\n\n\n"
+        "@njit\ndef add(a, b):\n    return a + b\n"
+    )
+    sys.path.insert(0, str(tmp_path))
+    try:
+        import kmod
+    finally:
+        sys.path.remove(str(tmp_path))
+        sys.modules.pop("kmod", None)
+    lock = kmod.add._cache._cache_file._index_path + ".lock"
+    os.makedirs(os.path.dirname(lock), exist_ok=True)
+    fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+    fcntl.flock(fd, fcntl.LOCK_EX)  # as a process compiling it would
+    code = (
+        "import sys, time; sys.path.insert(0, sys.argv[1]); import kmod\n"
+        "print('ready', flush=True); t = time.monotonic()\n"
+        "assert kmod.add(1, 2) == 3; print(time.monotonic() - t, flush=True)\n"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", code, str(tmp_path)],
+                            stdout=subprocess.PIPE, text=True)  # fmt: skip
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        time.sleep(1.5)
+        assert proc.poll() is None  # waiting for the lock
+    finally:
+        os.close(fd)  # released: it goes on
+    out, _ = proc.communicate(timeout=120)
+    assert proc.returncode == 0
+    assert float(out.strip()) >= 1.4

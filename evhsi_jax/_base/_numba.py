@@ -105,10 +105,64 @@ def njit(
     if inline:
         return numba.njit(inline="always", **opts)(fn)
     try:
-        disp = numba.njit(cache=True, nogil=True, **opts)(fn)
+        disp = _with_compile_lock(numba.njit(cache=True, nogil=True, **opts)(fn))
     except RuntimeError:
         disp = numba.njit(nogil=True, **opts)(fn)
     return _with_slp(disp) if slp else disp
+
+
+#: Longest wait (s) for another process's compilation of a kernel; then this process
+#: compiles it itself.
+COMPILE_LOCK_WAIT_S = 900.0
+
+
+def _with_compile_lock(disp):
+    """`disp` whose compilations hold a lock file beside its cache entry, so that
+    processes started together on a fresh install (the test suite's workers and the
+    `evhsi` processes they start; a user's parallel jobs) compile a kernel once: the
+    others wait, then load it from numba's cache (numba writes its cache files whole,
+    by renaming). The fused reconstruction kernel alone takes ~100 s to compile on
+    a 2-core machine (2026-12-07).
+
+    The lock is taken inside numba's compiler lock (one compilation per process at a
+    time, so a process's threads never wait for each other's lock file) and a
+    kernel's compilation only takes the locks of the kernels it calls: no cycle. No
+    lock where `fcntl` is missing (not POSIX) or the cache has no folder; after
+    `COMPILE_LOCK_WAIT_S` of waiting the process compiles without it."""
+    try:
+        import fcntl
+
+        lock_path = disp._cache._cache_file._index_path + ".lock"
+    except Exception:  # numba's internals moved, or no POSIX locks: no lock
+        return disp
+    import time
+
+    from numba.core.compiler_lock import global_compiler_lock
+
+    compile_plain = disp.compile
+
+    def compile(sig):
+        with global_compiler_lock:
+            try:
+                fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+            except OSError:  # a read-only cache folder: numba falls back on its own
+                return compile_plain(sig)
+            try:
+                deadline = time.monotonic() + COMPILE_LOCK_WAIT_S
+                while True:
+                    try:
+                        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                        break
+                    except OSError:
+                        if time.monotonic() > deadline:
+                            break
+                        time.sleep(0.05)
+                return compile_plain(sig)
+            finally:
+                os.close(fd)  # (releases the lock)
+
+    disp.compile = compile
+    return disp
 
 
 def _with_slp(disp):
