@@ -137,12 +137,18 @@ def _with_compile_lock(disp):
         return disp
     import time
 
+    from numba.core import sigutils
     from numba.core.compiler_lock import global_compiler_lock
 
     compile_plain = disp.compile
 
     def compile(sig):
         with global_compiler_lock:
+            try:  # already compiled in this process: no lock to wait for
+                if tuple(sigutils.normalize_signature(sig)[0]) in disp.overloads:
+                    return compile_plain(sig)
+            except Exception:
+                pass
             try:
                 fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o644)
             except OSError:  # a read-only cache folder: numba falls back on its own
