@@ -205,3 +205,35 @@ def test_a_kernel_compiling_elsewhere_is_waited_for(tmp_path):
     out, _ = proc.communicate(timeout=120)
     assert proc.returncode == 0
     assert float(out.strip()) >= 1.4
+
+
+def test_a_file_system_without_locks_compiles_at_once(tmp_path, monkeypatch):
+    """Where the cache's file system refuses locks (`flock` fails otherwise than by
+    being held), a kernel compiles without one, at once — not after waiting."""
+    import errno
+    import fcntl
+    import sys
+
+    pytest.importorskip("numba")
+    from evhsi_jax._base import _numba
+
+    (tmp_path / "kmod2.py").write_text(
+        "from evhsi_jax._base import njit\n\n\n"
+        "@njit\ndef mul(a, b):\n    return a * b\n"
+    )
+    sys.path.insert(0, str(tmp_path))
+    try:
+        import kmod2
+    finally:
+        sys.path.remove(str(tmp_path))
+        sys.modules.pop("kmod2", None)
+    calls = []
+
+    def refuse(fd, op):
+        calls.append(op)
+        raise OSError(errno.ENOLCK, "no locks available")
+
+    monkeypatch.setattr(fcntl, "flock", refuse)
+    monkeypatch.setattr(_numba, "COMPILE_LOCK_WAIT_S", 2.0)
+    assert kmod2.mul(3, 4) == 12
+    assert len(calls) == 1  # tried once, then compiled

@@ -127,8 +127,9 @@ def _with_compile_lock(disp):
     The lock is taken inside numba's compiler lock (one compilation per process at a
     time, so a process's threads never wait for each other's lock file) and a
     kernel's compilation only takes the locks of the kernels it calls: no cycle. No
-    lock where `fcntl` is missing (not POSIX) or the cache has no folder; after
-    `COMPILE_LOCK_WAIT_S` of waiting the process compiles without it."""
+    lock where `fcntl` is missing (not POSIX), the cache has no folder or its file
+    system has no locks; after `COMPILE_LOCK_WAIT_S` of waiting the process
+    compiles without it."""
     try:
         import fcntl
 
@@ -159,10 +160,12 @@ def _with_compile_lock(disp):
                     try:
                         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
                         break
-                    except OSError:
+                    except BlockingIOError:  # held by another process
                         if time.monotonic() > deadline:
                             break
                         time.sleep(0.05)
+                    except OSError:  # no locks on this file system: none
+                        break
                 return compile_plain(sig)
             finally:
                 os.close(fd)  # (releases the lock)
