@@ -163,6 +163,25 @@ def test_reconstruction_through_stored_programs(cache_on, monkeypatch):
     np.testing.assert_array_equal(second, direct)
 
 
+def _kernel(folder, module: str, body: str):
+    """The cached numba kernel `def <body>` of a module `module` written to `folder`
+    (through `evhsi_jax._base.njit`), not compiled yet; skips without numba."""
+    import importlib
+    import sys
+
+    pytest.importorskip("numba")
+    name = body.split("(")[0]
+    (folder / f"{module}.py").write_text(
+        f"from evhsi_jax._base import njit\n\n\n@njit\ndef {body}\n"
+    )
+    sys.path.insert(0, str(folder))
+    try:
+        return getattr(importlib.import_module(module), name)
+    finally:
+        sys.path.remove(str(folder))
+        sys.modules.pop(module, None)
+
+
 def test_a_kernel_compiling_elsewhere_is_waited_for(tmp_path):
     """A numba kernel's compilation holds a lock file beside its cache entry
     (`_numba._with_compile_lock`): a process that needs the kernel while another
@@ -174,18 +193,8 @@ def test_a_kernel_compiling_elsewhere_is_waited_for(tmp_path):
     import sys
     import time
 
-    pytest.importorskip("numba")
-    (tmp_path / "kmod.py").write_text(
-        "from evhsi_jax._base import njit\n\n\n"
-        "@njit\ndef add(a, b):\n    return a + b\n"
-    )
-    sys.path.insert(0, str(tmp_path))
-    try:
-        import kmod
-    finally:
-        sys.path.remove(str(tmp_path))
-        sys.modules.pop("kmod", None)
-    lock = kmod.add._cache._cache_file._index_path + ".lock"
+    add = _kernel(tmp_path, "kmod", "add(a, b):\n    return a + b")
+    lock = add._cache._cache_file._index_path + ".lock"
     os.makedirs(os.path.dirname(lock), exist_ok=True)
     fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
     fcntl.flock(fd, fcntl.LOCK_EX)  # as a process compiling it would
@@ -212,21 +221,10 @@ def test_a_file_system_without_locks_compiles_at_once(tmp_path, monkeypatch):
     being held), a kernel compiles without one, at once — not after waiting."""
     import errno
     import fcntl
-    import sys
 
-    pytest.importorskip("numba")
     from evhsi_jax._base import _numba
 
-    (tmp_path / "kmod2.py").write_text(
-        "from evhsi_jax._base import njit\n\n\n"
-        "@njit\ndef mul(a, b):\n    return a * b\n"
-    )
-    sys.path.insert(0, str(tmp_path))
-    try:
-        import kmod2
-    finally:
-        sys.path.remove(str(tmp_path))
-        sys.modules.pop("kmod2", None)
+    mul = _kernel(tmp_path, "kmod2", "mul(a, b):\n    return a * b")
     calls = []
 
     def refuse(fd, op):
@@ -235,5 +233,5 @@ def test_a_file_system_without_locks_compiles_at_once(tmp_path, monkeypatch):
 
     monkeypatch.setattr(fcntl, "flock", refuse)
     monkeypatch.setattr(_numba, "COMPILE_LOCK_WAIT_S", 2.0)
-    assert kmod2.mul(3, 4) == 12
+    assert mul(3, 4) == 12
     assert len(calls) == 1  # tried once, then compiled

@@ -344,6 +344,25 @@ def test_linearised_lowpass_rows_explain_a_lowpassed_capture():
     assert lin_rms < 0.5 * shift_rms
 
 
+def _lowpass_problem(seed: int, k: int):
+    """A float64 rig with a 3 kHz photoreceptor, smooth bands sweeping its channels
+    (some overlapping) as `a_at`, an answer `x0` and `k` events (times, steps): the
+    inputs of `_problem._lowpass_rows` (call inside `jax.enable_x64`)."""
+    rig = ev.Rig(photoreceptor_hz=3000.0).astype(np.float64)
+    m = rig.channels
+    period = float(rig.period_us)
+    rng = np.random.default_rng(seed)
+    centres = jnp.linspace(0.1 * period, 0.9 * period, m)
+
+    def a_at(t):
+        return 0.6 * jnp.exp(-0.5 * ((t[:, None] - centres) / (0.01 * period)) ** 2)
+
+    x0 = jnp.asarray(rng.uniform(0.05, 0.9, m))
+    t_us = jnp.asarray(np.sort(rng.uniform(0.15, 0.85, k)) * period)
+    step = jnp.asarray(rng.choice([-0.15, 0.15], k))
+    return rig, a_at, x0, t_us, step
+
+
 def test_lowpass_rows_are_the_filters_jacobian():
     """The photoreceptor rows linearise the filtered log-intensity at x0 to first
     order, decay included (a brighter pixel's filter is faster): their x-part is the
@@ -356,19 +375,8 @@ def test_lowpass_rows_are_the_filters_jacobian():
     from evhsi_jax._reconstruct._problem import _lowpass_rows
 
     with jax.enable_x64(True):
-        rig = ev.Rig(photoreceptor_hz=3000.0).astype(np.float64)
+        rig, a_at, x0, t_us, step = _lowpass_problem(seed=3, k=14)
         m = rig.channels
-        period = float(rig.period_us)
-        rng = np.random.default_rng(3)
-        centres = jnp.linspace(0.1 * period, 0.9 * period, m)
-
-        def a_at(t):  # smooth bands sweeping the channels, some overlapping
-            return 0.6 * jnp.exp(-0.5 * ((t[:, None] - centres) / (0.01 * period)) ** 2)
-
-        x0 = jnp.asarray(rng.uniform(0.05, 0.9, m))
-        k = 14
-        t_us = jnp.asarray(np.sort(rng.uniform(0.15, 0.85, k)) * period)
-        step = jnp.asarray(rng.choice([-0.15, 0.15], k))
         d_w = 1e6 / (2 * np.pi * 3000.0)
 
         def level_steps(x):  # Δy_k(x) − σ_k C, the filter's value at x
@@ -393,18 +401,7 @@ def test_lowpass_rows_scans_agree(monkeypatch):
     from evhsi_jax._reconstruct import _problem
 
     with jax.enable_x64(True):
-        rig = ev.Rig(photoreceptor_hz=3000.0).astype(np.float64)
-        m = rig.channels
-        period = float(rig.period_us)
-        rng = np.random.default_rng(4)
-        centres = jnp.linspace(0.1 * period, 0.9 * period, m)
-
-        def a_at(t):
-            return 0.6 * jnp.exp(-0.5 * ((t[:, None] - centres) / (0.01 * period)) ** 2)
-
-        x0 = jnp.asarray(rng.uniform(0.05, 0.9, m))
-        t_us = jnp.asarray(np.sort(rng.uniform(0.15, 0.85, 9)) * period)
-        step = jnp.asarray(rng.choice([-0.15, 0.15], 9))
+        rig, a_at, x0, t_us, step = _lowpass_problem(seed=4, k=9)
         rows = {}
         for mode in ("sequential", "associative"):
             monkeypatch.setattr(_problem, "LOWPASS_SCAN", mode)
