@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import warnings
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
@@ -35,10 +36,15 @@ from .._reconstruct import group_pixels, pixel_lists, warp_lists, warp_times
 __all__ = [
     "ChartData",
     "ChartSpeeds",
+    "PackedEvents",
     "chart_sweep_speeds",
     "chart_data",
     "chart_log_steps",
     "chart_residuals",
+    "packed_log_steps",
+    "packed_residuals",
+    "packed_scaled",
+    "packed_scaled_tangents",
     "spectral_traces",
     "sweep_first_events",
     "threshold_maps_from_chart",
@@ -412,19 +418,24 @@ def chart_log_steps(rig: Rig, data, traces=None, filtered=None):
     elif traces is None:
         raise ValueError("pass the spectral traces with device arrays")
     t, _, m, col, s_idx = data
-    offsets = rig.column_offsets(_width(rig, col))[col][:, None]
-    base = rig.baseline_level
     # References: the recording start for the first event, then τ_{k-1} + η.
     t_ref = jnp.concatenate(
         [jnp.zeros_like(t[:, :1]), t[:, :-1] + rig.refractory_us], axis=1
     )
+    return _log_steps_at(rig, t, t_ref, m, col[:, None], s_idx[:, None], traces, filtered)
+
+
+def _log_steps_at(rig: Rig, t, t_ref, m, col, s_idx, traces, filtered):
+    """Model log steps from the references `t_ref` to the events `t` (0 where `m`
+    is False); `col` and `s_idx` (each event's sensor column and chart spectrum)
+    broadcast against `t`."""
+    offsets = rig.column_offsets(_width(rig, col))[col]
+    base = rig.baseline_level
 
     def level(tt):
         # Only each pixel's own chart spectrum is interpolated: the linearisation
         # that Levenberg–Marquardt keeps then holds (n, k) arrays, not (n, k, S).
-        a = lookup(
-            traces, rig.band_centre_nm(tt, offsets), order=3, column=s_idx[:, None]
-        )
+        a = lookup(traces, rig.band_centre_nm(tt, offsets), order=3, column=s_idx)
         return jnp.log(jnp.maximum(a, 0.0) + base)
 
     hz = rig.effects.photoreceptor_hz
@@ -432,9 +443,7 @@ def chart_log_steps(rig: Rig, data, traces=None, filtered=None):
         ftab = filtered if filtered is not None else lowpassed_traces(rig, traces)
 
         def level(tt):
-            return lookup(
-                ftab, rig.band_centre_nm(tt, offsets), order=3, column=s_idx[:, None]
-            )
+            return lookup(ftab, rig.band_centre_nm(tt, offsets), order=3, column=s_idx)
 
     return jnp.where(m, level(t) - level(t_ref), 0.0)
 
@@ -459,14 +468,27 @@ def lowpassed_traces(rig: Rig, traces: BandTable, cutoff_hz=None) -> BandTable:
     return BandTable(filt, traces.lo_nm, traces.step_nm)
 
 
-def _inverse_threshold_sums(d, pos, neg):
-    """Per pixel (rows): the least-squares 1/C of its ON events (`pos`, 0/1) and of
-    its OFF events (`neg`), `(n, 1)` each, with 1/Σd² and the sign (1/C and 1/Σd²
-    are 0 where the pixel has no such events or they all have d = 0)."""
+def _row_totals(x, _rows):
+    """Each row's sum, `(n, 1)`: the pixels of the `(n, k)` event lists are rows."""
+    return jnp.sum(x, 1, keepdims=True)
+
+
+def _pixel_totals(x, pixel):
+    """Each event's pixel's sum over its events, at every event: the events of a
+    packed block (:class:`PackedEvents`), `pixel` their pixel's index in it."""
+    n = x.shape[-1]  # (a block holds at most one pixel per event)
+    return jax.ops.segment_sum(x, pixel, num_segments=n, indices_are_sorted=True)[pixel]
+
+
+def _inverse_threshold_sums(d, pos, neg, totals=_row_totals, pixel=None):
+    """Per pixel: the least-squares 1/C of its ON events (`pos`, 0/1) and of its OFF
+    events (`neg`), with 1/Σd² and the sign (1/C and 1/Σd² are 0 where the pixel has
+    no such events or they all have d = 0); `totals(x, pixel)` sums `x` over each
+    pixel's events (`(n, 1)` for the rows of event lists, or at every event)."""
     sums = []
     for sel, sign in ((pos, 1.0), (neg, -1.0)):
-        num = sign * jnp.sum(sel * d, 1, keepdims=True)
-        den = jnp.sum(sel * d * d, 1, keepdims=True)
+        num = sign * totals(sel * d, pixel)
+        den = totals(sel * d * d, pixel)
         ok = den > 0
         den = jnp.where(ok, den, 1.0)
         u, inv_den = jnp.where(ok, num / den, 0.0), jnp.where(ok, 1.0 / den, 0.0)
@@ -481,21 +503,38 @@ def _own_inverse_thresholds(d, pos, neg):
     return pos * up + neg * un
 
 
-@_own_inverse_thresholds.defjvp
-def _own_inverse_thresholds_jvp(primals, tangents):
+def _own_inverse_thresholds_tangent(d, pos, neg, dd, totals, pixel):
     # Written out (u = a/b, du = (da - u db)/b with a = ±Σd, b = Σd²): the automatic
-    # derivative of the sums above, vmapped over the calibration's tangents, cost
-    # ~2.5× the whole non-profiled normal-equations pass.
-    d, pos, neg = primals
-    dd = tangents[0]
+    # derivative of the sums, vmapped over the calibration's tangents, cost ~2.5× the
+    # whole non-profiled normal-equations pass.
     out, tan = 0.0, 0.0
-    sums = _inverse_threshold_sums(d, pos, neg)
+    sums = _inverse_threshold_sums(d, pos, neg, totals, pixel)
     for (u, inv_den, sign), sel in zip(sums, (pos, neg), strict=True):
-        da = sign * jnp.sum(sel * dd, 1, keepdims=True)
-        db = 2.0 * jnp.sum(sel * d * dd, 1, keepdims=True)
+        da = sign * totals(sel * dd, pixel)
+        db = 2.0 * totals(sel * d * dd, pixel)
         out = out + sel * u
         tan = tan + sel * ((da - u * db) * inv_den)
     return out, tan
+
+
+@_own_inverse_thresholds.defjvp
+def _own_inverse_thresholds_jvp(primals, tangents):
+    d, pos, neg = primals
+    return _own_inverse_thresholds_tangent(d, pos, neg, tangents[0], _row_totals, None)
+
+
+@jax.custom_jvp
+def _own_inverse_thresholds_packed(d, pos, neg, pixel):
+    """:func:`_own_inverse_thresholds` of a packed block's events (`pixel`: each
+    event's pixel in the block)."""
+    (up, _, _), (un, _, _) = _inverse_threshold_sums(d, pos, neg, _pixel_totals, pixel)
+    return pos * up + neg * un
+
+
+@_own_inverse_thresholds_packed.defjvp
+def _own_inverse_thresholds_packed_jvp(primals, tangents):
+    d, pos, neg, pixel = primals
+    return _own_inverse_thresholds_tangent(d, pos, neg, tangents[0], _pixel_totals, pixel)
 
 
 def chart_residuals(
@@ -530,6 +569,13 @@ def chart_residuals(
     def own():
         return _own_inverse_thresholds(d, pos.astype(d.dtype), neg.astype(d.dtype))
 
+    return _scaled_residuals(rig, d, pol, pos, neg, own, per_pixel)
+
+
+def _scaled_residuals(rig: Rig, d, pol, pos, neg, own, per_pixel):
+    """`d·(1/C) − σ` at the events (`pos | neg`; else 0): 1/C each pixel's own
+    (`own()`) or the rig's pair, chosen by `per_pixel` (a bool or a traced one)."""
+
     def common():
         return jnp.where(pol > 0, 1.0 / rig.threshold_on, 1.0 / rig.threshold_off)
 
@@ -538,6 +584,102 @@ def chart_residuals(
     else:
         u = jnp.where(per_pixel, own(), common())
     return jnp.where(pos | neg, d * u - pol, 0.0)
+
+
+class PackedEvents(NamedTuple):
+    """A block of chart events packed one after another, pixel after pixel (each
+    pixel's events in time order, its padding slots up to its last event kept so
+    that every event's reference is the slot before it): the calibration fit's
+    layout (:mod:`._fit`), where one program shape serves pixels of any event count.
+    Every field has the block's shape `(E,)` (or `(n_blocks, E)` stacked); padding:
+    `mask` False."""
+
+    t: Any  # event times (µs)
+    t_prev: Any  # the slot before's time (0 at a pixel's first slot)
+    first: Any  # a pixel's first slot: its reference is the recording start
+    polarity: Any
+    mask: Any
+    column: Any  # sensor column
+    spectrum: Any  # chart spectrum index
+    pixel: Any  # the pixel's index in the block (non-decreasing along it)
+
+
+def packed_log_steps(rig: Rig, block: PackedEvents, traces, filtered=None):
+    """:func:`chart_log_steps` of a packed block of events, `(E,)`."""
+    t_ref = jnp.where(block.first, jnp.zeros_like(block.t), block.t_prev + rig.refractory_us)
+    return _log_steps_at(
+        rig, block.t, t_ref, block.mask, block.column, block.spectrum, traces, filtered
+    )
+
+
+def packed_scaled(rig: Rig, block: PackedEvents, d, per_pixel=False):
+    """A packed block's residuals from its log steps `d` (:func:`packed_log_steps`):
+    :func:`chart_residuals`' last part, the per-pixel sums of `per_pixel` by segments.
+    Apart from `d`, it depends on the rig's thresholds only
+    (:func:`packed_scaled_tangents` gives its tangents)."""
+    pol = jnp.asarray(block.polarity).astype(d.dtype)
+    pos = block.mask & (pol > 0)
+    neg = block.mask & (pol < 0)
+
+    def own():
+        return _own_inverse_thresholds_packed(
+            d, pos.astype(d.dtype), neg.astype(d.dtype), block.pixel
+        )
+
+    return _scaled_residuals(rig, d, pol, pos, neg, own, per_pixel)
+
+
+def packed_scaled_tangents(block: PackedEvents, d, dd, inv, d_inv, per_pixel=False):
+    """:func:`packed_scaled` and its tangents, all at once: `(r, dr)`, `(E,)` and
+    `(T, E)`, for the log steps `d` with tangents `dd` (`(T, E)`) and the rig's
+    inverse thresholds `inv` = (1/C_on, 1/C_off) with tangents `d_inv` (`(T, 2)`).
+
+    :func:`_own_inverse_thresholds`' rule written out for T tangents together: all
+    the per-pixel, per-polarity sums of all the tangents are one segment sum of a
+    `(E, 2T + 2)` array. (XLA's CPU scatter costs ~0.1 µs per index whatever the
+    width of its rows: the rule mapped over the calibration's tangents, a segment
+    sum per tangent, made a 24×32 chart's normal equations 2-3× slower.)"""
+    dtype = d.dtype
+    pol = jnp.asarray(block.polarity).astype(dtype)
+    live = block.mask & (pol != 0)
+    u_c = jnp.where(pol > 0, inv[0], inv[1])
+    du_c = jnp.where(pol > 0, d_inv[:, :1], d_inv[:, 1:])
+
+    def own():
+        t = dd.shape[0]
+        m = live.astype(dtype)
+        sign = jnp.where(pol > 0, 1.0, -1.0).astype(dtype)
+        # Each pixel's ON and OFF events are two segments.
+        seg = 2 * block.pixel + (pol < 0).astype(block.pixel.dtype)
+        x = jnp.concatenate(
+            [jnp.stack([m * d, m * d * d], 1), (m * dd).T, (m * d * dd).T], axis=1
+        )
+        tot = jax.ops.segment_sum(x, seg, num_segments=2 * d.shape[-1])[seg]
+        num, den = sign * tot[:, 0], tot[:, 1]  # (of the event's pixel and polarity)
+        ok = den > 0
+        den = jnp.where(ok, den, 1.0)
+        u = jnp.where(ok, num / den, 0.0)
+        inv_den = jnp.where(ok, 1.0 / den, 0.0)
+        da = sign * tot[:, 2 : 2 + t].T  # (T, E)
+        db = 2.0 * tot[:, 2 + t :].T
+        return m * u, m * ((da - u * db) * inv_den)
+
+    if isinstance(per_pixel, (bool, np.bool_)):
+        u, du = own() if per_pixel else (u_c, du_c)
+    else:
+        u_o, du_o = own()
+        u, du = jnp.where(per_pixel, u_o, u_c), jnp.where(per_pixel, du_o, du_c)
+    r = jnp.where(live, d * u - pol, 0.0)
+    dr = jnp.where(live, dd * u + d * du, 0.0)
+    return r, dr
+
+
+def packed_residuals(
+    rig: Rig, block: PackedEvents, traces, *, per_pixel=False, filtered=None
+):
+    """:func:`chart_residuals` of a packed block of events, `(E,)`: the same values
+    event for event."""
+    return packed_scaled(rig, block, packed_log_steps(rig, block, traces, filtered), per_pixel)
 
 
 def _with_column_offsets(rig: Rig, width: int) -> Rig:

@@ -88,14 +88,16 @@ from ._chart import (
     PHOTORECEPTOR_REF_HZ,
     ChartData,
     ChartSpeeds,
+    PackedEvents,
     _closed_form_thresholds,
-    _host_lists,
     _log_steps,
     _with_column_offsets,
     chart_data,
-    chart_residuals,
     chart_sweep_speeds,
     lowpassed_traces,
+    packed_log_steps,
+    packed_scaled,
+    packed_scaled_tangents,
     spectral_traces,
     sweep_first_events,
     threshold_maps_from_chart,
@@ -184,43 +186,39 @@ def _response_basis(rig: Rig, degree: int) -> np.ndarray:
     return np.stack(rows) if rows else np.zeros((0, u.shape[0]))  # 0: D kept
 
 
-#: Padded events per block of chart pixels in the fit's passes. 2^12 since
+#: Events per block of the fit's passes (:class:`._chart.PackedEvents`). 2^12 since
 #: 2026-11-27: the warm in-process calibration of the 1280-column benchmark chart took
 #: 25.0 / 23.7 s against 27.8 / 28.2 s with 2^13 and 41.7 s with 2^15 (two runs each,
 #: same steps and fitted rig; 2^10 took 26.8 s and two more steps): each block's
-#: G + 1 tangents of its intermediates stay in the cache.
+#: G + 1 tangents of its intermediates stay in the cache. (Those blocks were padded
+#: per pixel to a power of two; packed, a block holds ~1.3× the events.)
 BLOCK_EVENTS = 1 << 12
-#: The fit's shortest event-count buckets join the next longer one while that adds
-#: at most this share of padded events (`_merge_small_buckets`): each bucket is one
-#: more traced pass in every compiled program. On the 1280-column benchmark chart
-#: (2026-11-27) 5 → 3 buckets, the solver's compilation 14.8 → 11.4 s with two stage
-#: programs, the warm fit unchanged within the machine's noise.
-MERGE_PADDING = 0.06
-#: Up to this many blocks a bucket's count of blocks is a power of two
-#: (`_blocks_of`): a new capture of the same small chart then has the same shapes,
-#: and reuses the compiled programs instead of spending ~15 s compiling its own.
-SMALL_BUCKET_BLOCKS = 16
+#: Up to this many blocks their count is a power of two (`_blocks_of`): a new capture
+#: of the same small chart then has the same shapes, and reuses the compiled
+#: programs instead of spending ~10 s compiling its own.
+SMALL_BLOCKS = 16
 
 
 class _FitData(eqx.Module):
     """What the chart-fit residuals read besides the parameters (all arguments, no
     closures: see `_fit_chart_float64`).
 
-    The chart's event lists travel in blocks of pixels: every pass over them holds one
-    block's intermediates at a time, so the fit's memory is bounded by the block, not
-    by the sensor's width. The pixels are sorted by their number of events and cut into
-    buckets of similar counts, each padded only to its own length: `buckets[i]` is
-    `(t, polarity, mask, column, spectrum)`, each `(n_blocks, block, ...)`. Per-pixel
-    inputs and outputs of the fit's programs (`keep`, the residuals) are in the
-    buckets' padded order, one slot per block row (`_bucketed`'s `slots` place the
-    pixels there): the programs then depend on the buckets' shapes alone, not on how
-    many pixels each holds, so a new capture of the same chart runs the programs
-    compiled for the last one.
+    The chart's events travel in blocks (`blocks`, a :class:`._chart.PackedEvents`
+    of `(n_blocks, BLOCK_EVENTS)` fields): each pixel's events one after another, as
+    many pixels as fit in a block. Every pass over them holds one block's
+    intermediates at a time, so the fit's memory is bounded by the block, not by the
+    sensor's width; and one block program serves pixels of every event count. (Until
+    2026-12-07 the pixels were sorted into buckets of event counts padded to powers of
+    two, one traced pass per bucket in every program: a 12×16 chart's solver, three
+    buckets, took ~11-13 s to compile, ~8.5 s with one.) The fit's programs' per-event
+    inputs and outputs (`keep`, the residuals) have the blocks' shape (`_Layout` maps
+    them to the chart's lists): the programs depend on the number of blocks alone, so
+    a new capture of the same chart runs the programs compiled for the last one.
     """
 
     rig: Rig
     basis: Any
-    buckets: Any
+    blocks: Any
     spectra: Any
     fixed_traces: Any
     overlap: Any  # the band's overlap table (computed once when the band is not fitted)
@@ -231,108 +229,107 @@ class _FitData(eqx.Module):
     fit_baseline: bool = eqx.field(static=True)
 
 
-def _fit_data(rig, basis, buckets, spectra, fixed_traces, overlap, band, gate,
+def _fit_data(rig, basis, blocks, spectra, fixed_traces, overlap, band, gate,
               fit_baseline) -> _FitData:  # fmt: skip
     """The fit's :class:`_FitData` (`overlap`: the rig's :func:`band_overlap`). Its
     rig has no band profile: the band enters through `overlap` or `band`, and the
     profile, a static value, would put its values into every program's key (see
     :func:`without_band_profile`)."""
-    return _FitData(without_band_profile(rig), basis, buckets, jnp.asarray(spectra),
+    return _FitData(without_band_profile(rig), basis, blocks, jnp.asarray(spectra),
                     fixed_traces, overlap.values, band, gate, overlap.lo_nm,
                     overlap.step_nm, fit_baseline)  # fmt: skip
 
 
-def _by_event_count(data: ChartData) -> ChartData:
-    """The chart pixels sorted by their number of events, most first."""
-    return data.subset(np.argsort(-data.mask.sum(axis=1), kind="stable"))
-
-
-def _merge_small_buckets(need: np.ndarray) -> np.ndarray:
-    """Each pixel's padded length (`need`, non-increasing), with the shortest lengths'
-    pixels moved up to the next longer one while that adds at most
-    `MERGE_PADDING` of the padded total: each length is one more traced pass in
-    every compiled program of the fit."""
-    need = need.copy()
-    total = float(need.sum())
-    added = 0.0
-    while True:
-        ks = np.unique(need)  # ascending
-        if ks.size < 2:
-            return need
-        k, k_up = ks[0], ks[1]
-        extra = float(np.sum(need == k)) * (k_up - k)
-        if added + extra > MERGE_PADDING * total:
-            return need
-        added += extra
-        need[need == k] = k_up
-
-
-def _blocks_of(n: int, block: int) -> int:
-    """Blocks for `n` pixels of `block` each, rounded up to few values so that
-    captures of one chart share their programs: a power of two up to
-    `SMALL_BUCKET_BLOCKS` (a bucket that small costs milliseconds per pass), else
-    a multiple of 1/16 of the power of two below (at most 1/16 more blocks: all
-    rows of the 48x1280 benchmark chart, 903 blocks, became 912, and another
-    capture of it had the same shapes)."""
-    need = max(1, -(-n // block))
-    if need <= SMALL_BUCKET_BLOCKS:
+def _blocks_of(need: int) -> int:
+    """`need` blocks rounded up to few values, so that captures of one chart share
+    their programs: a power of two up to `SMALL_BLOCKS` (that few cost milliseconds
+    per pass), else a multiple of 1/16 of the power of two below (at most 1/16 more:
+    903 blocks become 912)."""
+    need = max(1, need)
+    if need <= SMALL_BLOCKS:
         return 1 << (need - 1).bit_length()
     step = (1 << (need.bit_length() - 1)) // 16
     return -(-need // step) * step
 
 
-def _bucketed(data: ChartData, dtype):
-    """Sorted event lists → buckets of blocks (padding: no events), and each sorted
-    pixel's slot in the buckets' padded order (see :class:`_FitData`).
+@dataclasses.dataclass(frozen=True)
+class _Layout:
+    """Where the chart's event lists (`(n, k)`, :class:`ChartData`) sit in the packed
+    blocks (`shape`, `(n_blocks, E)`): list entry `(rows[i], pos[i])` is flat slot
+    `slot[i]`; `column`: each slot's sensor column (padding: 0)."""
 
-    A bucket holds the pixels whose event count needs the same power-of-two length
-    `k` (at least 8), in blocks of `BLOCK_EVENTS // k` pixels, their number rounded
-    by `_blocks_of`."""
-    counts = data.mask.sum(axis=1)
-    need = np.array([max(8, 1 << int(max(c - 1, 0)).bit_length()) for c in counts])
-    need = _merge_small_buckets(need)
-    buckets, slots = [], np.zeros(counts.size, np.int64)
-    start = offset = 0
-    while start < counts.size:
-        k = int(need[start])
-        stop = start + int(np.sum(need[start:] == k))
-        part = data.subset(slice(start, stop))
-        # Cut on the host, one transfer per array: with JAX operations each bucket's
-        # pads and reshapes were ~40 small compilations (~1 s) in a new process.
-        host = tuple(a[:, :k] if a.ndim == 2 else a for a in _host_lists(part, dtype))
-        n = stop - start
-        block = max(1, BLOCK_EVENTS // k)
-        n_blocks = _blocks_of(n, block)
-        pad = n_blocks * block - n
+    shape: tuple[int, int]
+    rows: np.ndarray
+    pos: np.ndarray
+    slot: np.ndarray
+    column: np.ndarray
+    lists: tuple[int, int]
 
-        def cut(a, pad=pad, n_blocks=n_blocks, block=block):
-            a = np.pad(a, ((0, pad),) + ((0, 0),) * (a.ndim - 1))
-            return jnp.asarray(a.reshape((n_blocks, block) + a.shape[1:]))
+    def per_slot(self, values, dtype):
+        """Per-pixel `values` at each of its slots, `(n_blocks, E)` (padding: 0)."""
+        out = np.zeros(self.shape[0] * self.shape[1], dtype)
+        out[self.slot] = np.asarray(values)[self.rows]
+        return jnp.asarray(out.reshape(self.shape))
 
-        buckets.append(tuple(cut(a) for a in host))
-        slots[start:stop] = offset + np.arange(n)
-        offset += n_blocks * block
-        start = stop
-    return tuple(buckets), slots
+    def to_lists(self, values) -> np.ndarray:
+        """Per-slot `values` (`(n_blocks, E)`) → the chart's lists, `(n, k)` (0 where
+        a list has no slot: past a pixel's last event)."""
+        flat = np.asarray(values).reshape(-1)
+        out = np.zeros(self.lists, flat.dtype)
+        out[self.rows, self.pos] = flat[self.slot]
+        return out
 
 
-def _slots_total(buckets) -> int:
-    """The number of slots (block rows) of all buckets."""
-    return sum(int(b[0].shape[0] * b[0].shape[1]) for b in buckets)
+def _packed(data: ChartData, dtype):
+    """The chart's event lists packed into blocks (:class:`._chart.PackedEvents`,
+    fields `(n_blocks, E)`, device arrays) and their :class:`_Layout`.
 
+    Each pixel's slots up to its last event (a slot in between that the chart's
+    screening dropped stays, masked, so every event's reference is the slot before
+    it, as in the lists), the pixels in their order, a pixel that does not fit in
+    what is left of a block starting the next one. E is `BLOCK_EVENTS`, or the
+    longest pixel's slots rounded up to a power of two."""
+    mask = np.asarray(data.mask)
+    n, k = mask.shape
+    length = np.where(mask.any(axis=1), k - np.argmax(mask[:, ::-1], axis=1), 0)
+    e = max(BLOCK_EVENTS, 1 << int(max(int(length.max(initial=1)) - 1, 0)).bit_length())
+    start = np.zeros(n, np.int64)  # each pixel's first slot
+    local = np.zeros(n, np.int64)  # its index in its block
+    offset, in_block = 0, 0
+    for i, m in enumerate(length.tolist()):
+        if offset % e + m > e:  # (does not fit: the next block)
+            offset, in_block = -(-offset // e) * e, 0
+        start[i], local[i] = offset, in_block
+        offset += m
+        in_block += 1
+    shape = (_blocks_of(-(-offset // e)), e)
+    rows = np.repeat(np.arange(n), length)
+    pos = np.arange(rows.size) - np.repeat(np.cumsum(length) - length, length)
+    slot = start[rows] + pos
+    t = np.asarray(data.t_us, dtype)
+    size = shape[0] * e
 
-def _to_slots(values, slots: np.ndarray, buckets, dtype):
-    """Per-pixel `values` (sorted chart pixels) → the buckets' slots (padding: 0)."""
-    out = np.zeros(_slots_total(buckets), dtype)
-    out[slots] = np.asarray(values)
-    return jnp.asarray(out)
+    def field(values, fill, kind):
+        out = np.full(size, fill, kind)
+        out[slot] = values
+        return jnp.asarray(out.reshape(shape))
 
-
-def _bucket_keep(keep, fit: _FitData, i: int):
-    """`keep` (one entry per slot) for bucket `i`, as its blocks."""
-    start = _slots_total(fit.buckets[:i])
-    shape = fit.buckets[i][0].shape[:2]
-    return keep[start : start + shape[0] * shape[1]].reshape(shape)
+    blocks = PackedEvents(
+        t=field(t[rows, pos], 0, dtype),
+        t_prev=field(np.where(pos > 0, t[rows, np.maximum(pos - 1, 0)], 0), 0, dtype),
+        first=field(pos == 0, True, bool),
+        polarity=field(np.asarray(data.polarity)[rows, pos], 0, np.int32),
+        mask=field(mask[rows, pos], False, bool),
+        column=field(np.asarray(data.column)[rows], 0, np.asarray(data.column).dtype),
+        spectrum=field(np.asarray(data.spectrum)[rows], 0, np.asarray(data.spectrum).dtype),
+        # (padding after a block's last pixel: the block's last index, keeping the
+        # indices sorted; its slots are masked)
+        pixel=field(local[rows], e - 1, np.int32),
+    )
+    column = np.zeros(size, np.int64)
+    column[slot] = np.asarray(data.column)[rows]
+    layout = _Layout(shape, rows, pos, slot, column.reshape(shape), (n, k))
+    return blocks, layout
 
 
 def _fit_rig(params, fit: _FitData) -> Rig:
@@ -373,15 +370,26 @@ def _fit_tables(params, fit: _FitData):
     return traces.values, jnp.zeros((0,), traces.values.dtype)
 
 
-def _block_residuals(params, tables, block, keep, profile, fit: _FitData):
-    """Event residuals of one block of chart pixels, `(block, k)` (0 in padding and
-    in dropped pixels)."""
+def _block_log_steps(params, tables, block, fit: _FitData):
+    """The model log steps of one packed block's events, `(E,)`."""
     r = _fit_rig(params, fit)
     lo, step = fit.overlap_lo_nm, fit.overlap_step_nm
     traces = BandTable(tables[0], lo, step)
     filtered = BandTable(tables[1], lo, step) if tables[1].size else None
-    res = chart_residuals(r, block, traces, per_pixel=profile, filtered=filtered)
-    return res * keep[:, None]
+    return packed_log_steps(r, block, traces, filtered)
+
+
+def _block_scaled(params, d, block, keep, profile, fit: _FitData):
+    """One packed block's residuals from its log steps `d`, `(E,)` (0 in padding and
+    in dropped pixels)."""
+    return packed_scaled(_fit_rig(params, fit), block, d, profile) * keep
+
+
+def _block_residuals(params, tables, block, keep, profile, fit: _FitData):
+    """Event residuals of one packed block, `(E,)` (0 in padding and in dropped
+    pixels)."""
+    d = _block_log_steps(params, tables, block, fit)
+    return _block_scaled(params, d, block, keep, profile, fit)
 
 
 def _band_values(theta, band):
@@ -445,21 +453,15 @@ def _prior_residuals(params, fit: _FitData):
 
 @eqx.filter_jit
 def _fit_residuals(params, profile, keep, fit: _FitData):
-    """Event residuals of every slot (see :class:`_FitData`), `(slots, k)`, block by
-    block (padding slots: zeros)."""
+    """Event residuals of every slot of the packed blocks (see :class:`_FitData`),
+    `(n_blocks, E)`, block by block (padding: zeros)."""
     tables = _fit_tables(params, fit)
-    k = max(b[0].shape[2] for b in fit.buckets)
-    out = []
-    for i, blocks in enumerate(fit.buckets):
 
-        def one(xs):
-            block, kb = xs
-            return _block_residuals(params, tables, block, kb, profile, fit)
+    def one(xs):
+        block, kb = xs
+        return _block_residuals(params, tables, block, kb, profile, fit)
 
-        res = jax.lax.map(one, (blocks, _bucket_keep(keep, fit, i)))
-        res = res.reshape((-1,) + res.shape[2:])
-        out.append(jnp.pad(res, ((0, 0), (0, k - res.shape[1]))))
-    return jnp.concatenate(out)
+    return jax.lax.map(one, (fit.blocks, keep))
 
 
 def _cutoff(params):
@@ -525,7 +527,8 @@ def _normal_equations(
     with `vmap`, the band-fitted system of a 16×24 chart took 1.6× as long on 2
     cores, 2026-12-07; see :func:`_table_tangents` for the tables' tangents).
     The τx part of JᵀJ is then diagonal and the τx–global part one segment sum per
-    block; nothing larger than a block's residuals is ever held.
+    block (over the events' columns); nothing larger than a block's residuals is ever
+    held.
     """
     p = u_flat.shape[0]
     w = tau_idx.size
@@ -535,31 +538,36 @@ def _normal_equations(
     tables, d_tables = _table_tangents(u_flat, unravel, scale, fit, tans, band_size)
     dtype = u_flat.dtype
 
+    def inverse_thresholds(uf):
+        r = _fit_rig(_theta(uf, unravel, scale), fit)
+        return jnp.stack([1.0 / r.threshold_on, 1.0 / r.threshold_off])
+
+    inv, inv_lin = jax.linearize(inverse_thresholds, u_flat)
+    d_inv = jax.vmap(inv_lin)(tans)  # (G + 1, 2)
+
     def body(carry, xs):
         block, kb = xs
 
-        def f(uf, tb):
-            th = _theta(uf, unravel, scale)
-            return _block_residuals(th, tb, block, kb, profile, fit).reshape(-1)
+        def steps(uf, tb):
+            return _block_log_steps(_theta(uf, unravel, scale), tb, block, fit)
 
-        r, f_lin = jax.linearize(f, u_flat, tables)
-        jac = jax.lax.map(lambda xs: f_lin(*xs), (tans, d_tables))  # (G + 1, events)
+        # The log steps' tangents one at a time (their table lookups), then the
+        # residuals' all at once (their per-pixel sums: one segment sum).
+        d, steps_lin = jax.linearize(steps, u_flat, tables)
+        jd = jax.lax.map(lambda xs: steps_lin(*xs), (tans, d_tables))  # (G + 1, events)
+        r, jac = packed_scaled_tangents(block, d, jd, inv, d_inv, profile)
+        r, jac = r * kb, jac * kb
         jg, jt = jac[:g], jac[g]
-        # Per pixel first (all of a pixel's events share its column), then per column.
-        rows = block[0].shape[0]
-        col = block[3]
-
-        def per_column(v):  # (..., block * k) → (..., W)
-            v = v.reshape(v.shape[:-1] + (rows, -1)).sum(-1)
-            return jax.ops.segment_sum(jnp.moveaxis(v, -1, 0), col, num_segments=w)
-
+        # The τx sums per column, in one segment sum: (W, G + 2).
+        rows = jnp.concatenate([jg * jt, (jt * jt)[None], (jt * r)[None]])
+        cols = jax.ops.segment_sum(rows.T, block.column, num_segments=w)
         hgg, hgt, htt, bg, bt, ss = carry
         return (
             hgg + jg @ jg.T,
-            hgt + per_column(jg * jt),
-            htt + per_column(jt * jt),
+            hgt + cols[:, :g],
+            htt + cols[:, g],
             bg + jg @ r,
-            bt + per_column(jt * r),
+            bt + cols[:, g + 1],
             ss + r @ r,
         ), None
 
@@ -571,9 +579,7 @@ def _normal_equations(
         jnp.zeros((w,), dtype),
         jnp.zeros((), dtype),
     )
-    for i, blocks in enumerate(fit.buckets):
-        xs = (blocks, _bucket_keep(keep, fit, i))
-        carry, _ = jax.lax.scan(body, carry, xs)
+    carry, _ = jax.lax.scan(body, carry, (fit.blocks, keep))
     return carry
 
 
@@ -1015,26 +1021,25 @@ def _screened_chart_data(
 JACOBI_STEP = 1e-6
 
 
-def _jacobi_scale(p0: dict, residuals, slot_column, width: int):
+def _jacobi_scale(p0: dict, residuals, column, width: int):
     """Each parameter's Jacobian column norm at `p0` (floored): the change of variables
     of :func:`_fit_chart_float64`; and the residuals' sum of squares there.
 
     By forward differences of the event residuals (`residuals(params)`: one
-    threshold pair, every slot, `(slots, k)`; `slot_column`: each slot's sensor
-    column) — one evaluation per global parameter and one with every τx moved at
-    once, each residual depending on its own column's τx only. The norms equal the
-    forward-mode derivatives' within ~1e-6 relative (48x1280 benchmark chart,
-    2026-11-29), all a preconditioner needs; the residuals' program is one the fit
-    runs anyway, where a program of its own for the derivatives had been ~3.5-5 s of
-    compilation per fit on a first run (twice with the band's strip)."""
+    threshold pair, an array; `column`: each of its entries' sensor column) — one
+    evaluation per global parameter and one with every τx moved at once, each
+    residual depending on its own column's τx only. The norms equal the forward-mode
+    derivatives' within ~1e-6 relative (48x1280 benchmark chart, 2026-11-29), all a
+    preconditioner needs; the residuals' program is one the fit runs anyway, where a
+    program of its own for the derivatives had been ~3.5-5 s of compilation per fit
+    on a first run (twice with the band's strip)."""
     base = residuals(p0)
     h = JACOBI_STEP
     norms = {}
     for name, v in p0.items():
         if name == "tau":
-            d = (residuals({**p0, "tau": v + h}) - base) / h
-            per_slot = np.einsum("ij,ij->i", d, d)
-            norms[name] = np.sqrt(np.bincount(slot_column, per_slot, minlength=width))
+            d = np.reshape((residuals({**p0, "tau": v + h}) - base) / h, -1)
+            norms[name] = np.sqrt(np.bincount(np.reshape(column, -1), d * d, minlength=width))
             continue
         flat = np.asarray(v, np.float64).reshape(-1)
         col = np.zeros(flat.size)
@@ -1043,14 +1048,14 @@ def _jacobi_scale(p0: dict, residuals, slot_column, width: int):
             moved[i] += h
             shifted = jnp.asarray(moved.reshape(np.shape(v)), v.dtype)
             d = (residuals({**p0, name: shifted}) - base) / h
-            col[i] = np.sqrt(np.einsum("ij,ij->", d, d))
+            col[i] = np.sqrt(np.sum(np.square(d)))
         norms[name] = col.reshape(np.shape(v))
     scale = {
         k: jnp.asarray(np.maximum(v, 1e-6 * np.max(v) + 1e-30) if v.size else v,
                        p0[k].dtype)  # fmt: skip
         for k, v in norms.items()
     }
-    return scale, float(np.einsum("ij,ij->", base, base))
+    return scale, float(np.sum(np.square(base)))
 
 
 #: A Levenberg–Marquardt step whose loss equals the current one to this share of it
@@ -1270,7 +1275,6 @@ def _fit_chart_once(
     if from_data:
         rig = initial_guess(data, rig)
     dtype = rig.fwhm_nm.dtype
-    data = _by_event_count(data)  # (the buckets of the fit's passes)
     basis = _response_basis(rig, response_degree)
     fixed_traces = (  # the table's values (a BandTable is not a pytree leaf holder)
         None
@@ -1303,15 +1307,16 @@ def _fit_chart_once(
     # compiled function depends on shapes only: one compilation per shape in a
     # process, and the persistent cache serves the next process.
     overlap = band_overlap(rig)
-    buckets, slots = _bucketed(data, dtype)
+    blocks, layout = _packed(data, dtype)
     n_px = data.t_us.shape[0]
-    # Pixels in the fit (outliers: 0), in the buckets' slots (see _FitData).
-    keep = ones = _to_slots(np.ones(n_px), slots, buckets, dtype)
+    # Pixels in the fit (outliers: False), and at their events' slots (see _FitData).
+    keep_px = np.ones(n_px, bool)
+    keep = ones = layout.per_slot(keep_px, dtype)
     band = _band_start(rig, dtype) if fit_band else None
     spectra = jnp.asarray(data.spectra, dtype)
 
     def fit_data(band, gate):
-        return _fit_data(rig, basis, buckets, spectra, fixed_traces, overlap, band,
+        return _fit_data(rig, basis, blocks, spectra, fixed_traces, overlap, band,
                          gate, fit_baseline)  # fmt: skip
 
     def lm_args(u, scale, fit, profile, tol):  # (`keep`: the current one)
@@ -1326,16 +1331,16 @@ def _fit_chart_once(
 
     fit = fit_data(band, jnp.ones((), dtype))
 
-    def slot_residuals(params, profile, keep):  # (slots, k), the buckets' order
+    def slot_residuals(params, profile, keep):  # (n_blocks, E), the packed slots
         # (`profile` as an array: one program for both kinds of residual)
         args = (params, jnp.asarray(profile), keep, fit)
         return np.asarray(call_exported("calibrate_residuals", _fit_residuals, args))
 
-    def residuals(params, profile, keep):  # (n_px, k), the sorted chart pixels
-        return slot_residuals(params, profile, keep)[slots]
+    def residuals(params, profile, keep):  # (n_px, k), the chart's lists
+        return layout.to_lists(slot_residuals(params, profile, keep))
 
-    def rms_of(sum_sq, keep):  # over the events of the kept pixels
-        n = int((data.mask & (np.asarray(keep)[slots] > 0)[:, None]).sum())
+    def rms_of(sum_sq, keep_px):  # over the events of the kept pixels
+        n = int((data.mask & keep_px[:, None]).sum())
         return float(np.sqrt(sum_sq / max(n, 1)))
 
     def sum_sq(res):
@@ -1356,12 +1361,10 @@ def _fit_chart_once(
     # the start): the Gauss–Newton matrix then has a unit diagonal and is "identity plus
     # the rank-4 coupling of the global parameters", so the matrix-free CG inside each
     # Levenberg–Marquardt step converges in a few iterations.
-    slot_column = np.zeros(_slots_total(buckets), np.int64)
-    slot_column[slots] = data.column
     scale, ss0 = _jacobi_scale(
-        p0, lambda p: slot_residuals(p, False, keep), slot_column, w
+        p0, lambda p: slot_residuals(p, False, keep), layout.column, w
     )
-    r0 = rms_of(float(ss0), keep)
+    r0 = rms_of(float(ss0), keep_px)
     # Stage 1: one threshold pair for all pixels. Stage 2 (per_pixel): the same fit with
     # every pixel's thresholds profiled out, so per-pixel mismatch cannot bias β, c, τx;
     # the thresholds then follow in closed form and the rig's global pair is their mean.
@@ -1418,7 +1421,7 @@ def _fit_chart_once(
                 f"calibrate (profiled={profile}): "
                 f"{'converged' if converged else 'not converged'} after "
                 f"{int(n_steps)} steps, rms "
-                f"{rms_of(sum_sq(residuals(params, profile, keep)), keep):.5f}"
+                f"{rms_of(sum_sq(residuals(params, profile, keep)), keep_px):.5f}"
             )
         if not profile:
             # Robustness: a pixel with an event the model cannot explain (a noise
@@ -1428,11 +1431,11 @@ def _fit_chart_once(
             bad_px = _outlier_pixels(r, data.mask)
             outlier_pixels = int(bad_px.sum())
             if 0 < outlier_pixels < 0.5 * bad_px.size:
-                keep = _to_slots(~bad_px, slots, buckets, dtype)
+                keep_px = ~bad_px
+                keep = layout.per_slot(keep_px, dtype)
     res_final = residuals(params, per_pixel, keep)
-    rms = rms_of(sum_sq(res_final), keep)
-    kept = np.asarray(keep)[slots] > 0
-    data = dataclasses.replace(data, mask=data.mask & kept[:, None])
+    rms = rms_of(sum_sq(res_final), keep_px)
+    data = dataclasses.replace(data, mask=data.mask & keep_px[:, None])
     fitted = _apply(params, rig, basis)
     if not fit_baseline:
         fitted = fitted.with_leaves(baseline_rel=rig.baseline_rel)

@@ -1,9 +1,10 @@
 """The calibration's blocked Gauss–Newton system against a dense Jacobian.
 
 `_fit_chart_float64` hands optimistix a reduced residual built from normal equations
-accumulated over blocks of pixels; here they are checked against `jax.jacfwd` of the
-whole residual vector (every event and the τx prior) on a small chart, with blocks
-small enough that the pixels fall into several count buckets and several blocks each.
+accumulated over blocks of packed events; here they are checked against `jax.jacfwd`
+of the whole residual vector (every event and the τx prior) on a small chart, with
+blocks small enough that the chart's events fill several, each holding pixels of
+several event counts.
 """
 
 import jax
@@ -30,15 +31,15 @@ def system(request):
         rig = F._with_column_offsets(ev.Rig(photoreceptor_hz=20000.0), w).astype(
             jnp.float64
         )
-        data = F._by_event_count(chart_data(events, chart, rig, rows_per_label=None))
+        data = chart_data(events, chart, rig, rows_per_label=None)
         old = F.BLOCK_EVENTS
-        F.BLOCK_EVENTS = 64  # several blocks per bucket
+        F.BLOCK_EVENTS = 64  # several blocks
         try:
-            buckets, slots = F._bucketed(data, jnp.float64)
+            blocks, layout = F._packed(data, jnp.float64)
         finally:
             F.BLOCK_EVENTS = old
         band = F._band_start(rig, jnp.float64) if request.param else None
-        fit = F._fit_data(rig, F._response_basis(rig, 2), buckets, data.spectra, None,
+        fit = F._fit_data(rig, F._response_basis(rig, 2), blocks, data.spectra, None,
                           band_overlap(rig), band, jnp.ones((), jnp.float64),
                           True)  # fmt: skip
         key = jr.key(1)
@@ -56,8 +57,8 @@ def system(request):
         scale = jax.tree.map(lambda a: 1.5 + jnp.zeros_like(a), u)
         keep = np.ones(data.t_us.shape[0])
         keep[3] = 0.0  # one pixel dropped
-        keep = F._to_slots(keep, slots, buckets, np.float64)  # (the fit's layout)
-        yield u, scale, keep, fit, data, buckets, slots
+        keep = layout.per_slot(keep, np.float64)  # (the fit's layout)
+        yield u, scale, keep, fit, data, blocks, layout
 
 
 def _dense(u, scale, keep, fit, profile):
@@ -75,8 +76,14 @@ def _dense(u, scale, keep, fit, profile):
 
 @pytest.mark.parametrize("profile", [False, True])
 def test_blocked_normal_equations_match_the_dense_jacobian(system, profile):
-    u, scale, keep, fit, data, buckets, _ = system
-    assert len(buckets) >= 2 and max(b[0].shape[0] for b in buckets) >= 2
+    u, scale, keep, fit, data, _, layout = system
+    assert layout.shape[0] >= 4
+    # Pixels of different event counts share blocks.
+    lengths = np.bincount(layout.rows, minlength=layout.lists[0])
+    block_of = layout.slot // layout.shape[1]
+    first = np.searchsorted(layout.rows, np.arange(layout.lists[0]))
+    per_block = [set(lengths[layout.rows[first][block_of[first] == b]]) for b in range(3)]
+    assert all(len(c) >= 2 for c in per_block), per_block
     with jax.enable_x64(True):
         # jitted (op by op, a cold cache compiled every primitive on its own)
         h, b, ss = jax.jit(lambda u: F._fit_system(u, (scale, (profile, keep, fit))))(u)
@@ -92,13 +99,13 @@ def test_jacobi_scale_by_differences_matches_the_derivatives(system):
     """`_jacobi_scale`'s forward differences of the residuals' program (one per
     global parameter, one with every τx moved at once) give the Jacobian's column
     norms — here from `jax.jacfwd`, one column per τx — to ~1e-6."""
-    u, scale, keep, fit, data, buckets, slots = system
+    u, scale, keep, fit, data, _, layout = system
     with jax.enable_x64(True):
         theta = F._unscale(u, scale)
         res = jax.jit(lambda p: F._fit_residuals(p, jnp.asarray(False), keep, fit))
-        column = np.zeros(F._slots_total(buckets), np.int64)
-        column[slots] = data.column
-        got, ss = F._jacobi_scale(theta, lambda p: np.asarray(res(p)), column, data.width)
+        got, ss = F._jacobi_scale(
+            theta, lambda p: np.asarray(res(p)), layout.column, data.width
+        )
         flat, unravel = jax.flatten_util.ravel_pytree(theta)
         jac = jax.jit(jax.jacfwd(lambda f: res(unravel(f)).reshape(-1)))(flat)
         norms = unravel(jnp.sqrt(jnp.sum(jac**2, axis=0)))
@@ -217,7 +224,8 @@ def test_new_captures_of_a_chart_share_the_fits_programs():
     (`call_exported`): two captures of one chart (other thresholds, other noise)
     and another band profile in the start give the same, so a user's next
     calibration runs the programs the last one compiled (README, Performance,
-    "Calibration's memory and time"). The pixels' slots are a one-to-one placement."""
+    "Calibration's memory and time"). Each list entry up to a pixel's last event has
+    a slot of its own."""
     h, w = 12, 8
     chart = ev.load_scene("gray-chart", (h, w))
     truth = ev.Rig(threshold_noise=0.02)
@@ -226,14 +234,15 @@ def test_new_captures_of_a_chart_share_the_fits_programs():
         events = ev.simulate(chart, truth, sweeps=2, key=jr.key(seed))
         with jax.enable_x64(True):
             rig = F._with_column_offsets(start, w).astype(jnp.float64)
-            data = F._by_event_count(chart_data(events, chart, rig, rows_per_label=None))
-            buckets, slots = F._bucketed(data, jnp.float64)
+            data = chart_data(events, chart, rig, rows_per_label=None)
+            blocks, layout = F._packed(data, jnp.float64)
             n = data.t_us.shape[0]
-            assert np.unique(slots).size == n and slots.max() < F._slots_total(buckets)
-            fit = F._fit_data(rig, F._response_basis(rig, 2), buckets, data.spectra,
+            assert np.unique(layout.slot).size == layout.slot.size
+            assert np.asarray(blocks.mask).sum() == data.mask.sum()
+            fit = F._fit_data(rig, F._response_basis(rig, 2), blocks, data.spectra,
                               None, band_overlap(rig), None, jnp.ones((), jnp.float64),
                               True)  # fmt: skip
-            keep = F._to_slots(np.ones(n), slots, buckets, np.float64)
+            keep = layout.per_slot(np.ones(n), np.float64)
             leaves, treedef = jax.tree.flatten((keep, fit))
             sigs.append((treedef, [np.shape(a) for a in leaves], data.mask.sum()))
     assert sigs[0][2] != sigs[1][2]  # other captures: other event counts
@@ -241,8 +250,55 @@ def test_new_captures_of_a_chart_share_the_fits_programs():
 
 
 def test_block_counts_are_rounded_to_few_values():
-    small = {F._blocks_of(n, 1) for n in range(1, F.SMALL_BUCKET_BLOCKS + 1)}
+    small = {F._blocks_of(n) for n in range(1, F.SMALL_BLOCKS + 1)}
     assert small == {1, 2, 4, 8, 16}
-    for need in range(F.SMALL_BUCKET_BLOCKS + 1, 5000, 7):
-        got = F._blocks_of(need * 64 - 5, 64)  # (need blocks of 64 pixels)
+    for need in range(F.SMALL_BLOCKS + 1, 5000, 7):
+        got = F._blocks_of(need)
         assert need <= got <= need * (1 + 1 / 16)
+
+
+@pytest.mark.parametrize("per_pixel", [False, True])
+def test_packed_residuals_and_tangents_are_the_lists(system, per_pixel):
+    """The packed blocks' residuals are the chart lists' (`chart_residuals`, whose
+    profiled derivative test_calibrate.py checks against the automatic one), event
+    for event; and so are their tangents, along a direction of the traces and one
+    that also changes C_on, from `packed_scaled_tangents`' batched rule and from
+    `jax.jvp` of the lists' residuals."""
+    from evhsi_jax._calibrate import _chart as C
+
+    *_, data, blocks, layout = system
+    with jax.enable_x64(True):
+        rig = F._with_column_offsets(ev.Rig(photoreceptor_hz=20000.0), data.width)
+        rig = rig.astype(jnp.float64)
+        traces = C.spectral_traces(rig, data.spectra)
+        dirs = jr.normal(jr.key(3), (2,) + traces.values.shape, jnp.float64)
+
+        def lists(log_on, tv):
+            r = rig.with_leaves(threshold_on=rig.threshold_on * jnp.exp(log_on))
+            tab = C.BandTable(tv, traces.lo_nm, traces.step_nm)
+            return C.chart_residuals(r, data, tab, per_pixel=per_pixel)
+
+        zero = jnp.zeros((), jnp.float64)
+        want = [lists(zero, traces.values)]
+        for i, dlog in enumerate((0.0, 1.0)):
+            tangent = (jnp.asarray(dlog), dirs[i])
+            want.append(jax.jvp(lists, (zero, traces.values), tangent)[1])
+
+        def packed(block):
+            def steps(tv):
+                tab = C.BandTable(tv, traces.lo_nm, traces.step_nm)
+                return C.packed_log_steps(rig, block, tab)
+
+            d, lin = jax.linearize(steps, traces.values)
+            dd = jax.vmap(lin)(dirs)
+            inv = jnp.stack([1.0 / rig.threshold_on, 1.0 / rig.threshold_off])
+            d_inv = jnp.stack([jnp.zeros(2), jnp.stack([-inv[0], 0.0 * inv[1]])])
+            r, dr = C.packed_scaled_tangents(block, d, dd, inv, d_inv, per_pixel)
+            return r, dr, C.packed_scaled(rig, block, d, per_pixel)
+
+        r, dr, direct = jax.jit(jax.vmap(packed))(blocks)
+    np.testing.assert_array_equal(np.asarray(r), np.asarray(direct))
+    got = [layout.to_lists(r)] + [layout.to_lists(dr[:, i]) for i in range(2)]
+    for g, w in zip(got, want, strict=True):
+        w = np.asarray(w)
+        np.testing.assert_allclose(g, w, rtol=1e-10, atol=1e-12 * np.abs(w).max())
