@@ -42,7 +42,6 @@ __all__ = [
     "chart_log_steps",
     "chart_residuals",
     "packed_log_steps",
-    "packed_residuals",
     "packed_scaled",
     "packed_scaled_tangents",
     "spectral_traces",
@@ -480,6 +479,14 @@ def _pixel_totals(x, pixel):
     return jax.ops.segment_sum(x, pixel, num_segments=n, indices_are_sorted=True)[pixel]
 
 
+def _least_squares_ratio(num, den):
+    """`(num / den, 1 / den)`, both 0 where `den` is not positive (no events, or all
+    with d = 0)."""
+    ok = den > 0
+    den = jnp.where(ok, den, 1.0)
+    return jnp.where(ok, num / den, 0.0), jnp.where(ok, 1.0 / den, 0.0)
+
+
 def _inverse_threshold_sums(d, pos, neg, totals=_row_totals, pixel=None):
     """Per pixel: the least-squares 1/C of its ON events (`pos`, 0/1) and of its OFF
     events (`neg`), with 1/Σd² and the sign (1/C and 1/Σd² are 0 where the pixel has
@@ -488,10 +495,7 @@ def _inverse_threshold_sums(d, pos, neg, totals=_row_totals, pixel=None):
     sums = []
     for sel, sign in ((pos, 1.0), (neg, -1.0)):
         num = sign * totals(sel * d, pixel)
-        den = totals(sel * d * d, pixel)
-        ok = den > 0
-        den = jnp.where(ok, den, 1.0)
-        u, inv_den = jnp.where(ok, num / den, 0.0), jnp.where(ok, 1.0 / den, 0.0)
+        u, inv_den = _least_squares_ratio(num, totals(sel * d * d, pixel))
         sums.append((u, inv_den, sign))
     return sums
 
@@ -503,38 +507,21 @@ def _own_inverse_thresholds(d, pos, neg):
     return pos * up + neg * un
 
 
-def _own_inverse_thresholds_tangent(d, pos, neg, dd, totals, pixel):
+@_own_inverse_thresholds.defjvp
+def _own_inverse_thresholds_jvp(primals, tangents):
     # Written out (u = a/b, du = (da - u db)/b with a = ±Σd, b = Σd²): the automatic
-    # derivative of the sums, vmapped over the calibration's tangents, cost ~2.5× the
-    # whole non-profiled normal-equations pass.
+    # derivative of the sums above, vmapped over the calibration's tangents, cost
+    # ~2.5× the whole non-profiled normal-equations pass.
+    d, pos, neg = primals
+    dd = tangents[0]
     out, tan = 0.0, 0.0
-    sums = _inverse_threshold_sums(d, pos, neg, totals, pixel)
+    sums = _inverse_threshold_sums(d, pos, neg)
     for (u, inv_den, sign), sel in zip(sums, (pos, neg), strict=True):
-        da = sign * totals(sel * dd, pixel)
-        db = 2.0 * totals(sel * d * dd, pixel)
+        da = sign * jnp.sum(sel * dd, 1, keepdims=True)
+        db = 2.0 * jnp.sum(sel * d * dd, 1, keepdims=True)
         out = out + sel * u
         tan = tan + sel * ((da - u * db) * inv_den)
     return out, tan
-
-
-@_own_inverse_thresholds.defjvp
-def _own_inverse_thresholds_jvp(primals, tangents):
-    d, pos, neg = primals
-    return _own_inverse_thresholds_tangent(d, pos, neg, tangents[0], _row_totals, None)
-
-
-@jax.custom_jvp
-def _own_inverse_thresholds_packed(d, pos, neg, pixel):
-    """:func:`_own_inverse_thresholds` of a packed block's events (`pixel`: each
-    event's pixel in the block)."""
-    (up, _, _), (un, _, _) = _inverse_threshold_sums(d, pos, neg, _pixel_totals, pixel)
-    return pos * up + neg * un
-
-
-@_own_inverse_thresholds_packed.defjvp
-def _own_inverse_thresholds_packed_jvp(primals, tangents):
-    d, pos, neg, pixel = primals
-    return _own_inverse_thresholds_tangent(d, pos, neg, tangents[0], _pixel_totals, pixel)
 
 
 def chart_residuals(
@@ -588,14 +575,13 @@ def _scaled_residuals(rig: Rig, d, pol, pos, neg, own, per_pixel):
 
 class PackedEvents(NamedTuple):
     """A block of chart events packed one after another, pixel after pixel (each
-    pixel's events in time order, its padding slots up to its last event kept so
-    that every event's reference is the slot before it): the calibration fit's
-    layout (:mod:`._fit`), where one program shape serves pixels of any event count.
-    Every field has the block's shape `(E,)` (or `(n_blocks, E)` stacked); padding:
-    `mask` False."""
+    pixel's events in time order, its padding slots up to its last event kept, so
+    that every event's reference is the time in the slot before it): the calibration
+    fit's layout (:mod:`._fit`), where one program shape serves pixels of any event
+    count. Every field has the block's shape `(E,)` (or `(n_blocks, E)` stacked);
+    padding: `mask` False."""
 
     t: Any  # event times (µs)
-    t_prev: Any  # the slot before's time (0 at a pixel's first slot)
     first: Any  # a pixel's first slot: its reference is the recording start
     polarity: Any
     mask: Any
@@ -606,7 +592,9 @@ class PackedEvents(NamedTuple):
 
 def packed_log_steps(rig: Rig, block: PackedEvents, traces, filtered=None):
     """:func:`chart_log_steps` of a packed block of events, `(E,)`."""
-    t_ref = jnp.where(block.first, jnp.zeros_like(block.t), block.t_prev + rig.refractory_us)
+    t = block.t
+    t_prev = jnp.concatenate([jnp.zeros_like(t[..., :1]), t[..., :-1]], axis=-1)
+    t_ref = jnp.where(block.first, jnp.zeros_like(t), t_prev + rig.refractory_us)
     return _log_steps_at(
         rig, block.t, t_ref, block.mask, block.column, block.spectrum, traces, filtered
     )
@@ -616,15 +604,16 @@ def packed_scaled(rig: Rig, block: PackedEvents, d, per_pixel=False):
     """A packed block's residuals from its log steps `d` (:func:`packed_log_steps`):
     :func:`chart_residuals`' last part, the per-pixel sums of `per_pixel` by segments.
     Apart from `d`, it depends on the rig's thresholds only
-    (:func:`packed_scaled_tangents` gives its tangents)."""
+    (:func:`packed_scaled_tangents` gives its tangents; the automatic derivative of
+    this function is what tests check them against)."""
     pol = jnp.asarray(block.polarity).astype(d.dtype)
     pos = block.mask & (pol > 0)
     neg = block.mask & (pol < 0)
 
     def own():
-        return _own_inverse_thresholds_packed(
-            d, pos.astype(d.dtype), neg.astype(d.dtype), block.pixel
-        )
+        on, off = pos.astype(d.dtype), neg.astype(d.dtype)
+        sums = _inverse_threshold_sums(d, on, off, _pixel_totals, block.pixel)
+        return on * sums[0][0] + off * sums[1][0]
 
     return _scaled_residuals(rig, d, pol, pos, neg, own, per_pixel)
 
@@ -655,11 +644,8 @@ def packed_scaled_tangents(block: PackedEvents, d, dd, inv, d_inv, per_pixel=Fal
             [jnp.stack([m * d, m * d * d], 1), (m * dd).T, (m * d * dd).T], axis=1
         )
         tot = jax.ops.segment_sum(x, seg, num_segments=2 * d.shape[-1])[seg]
-        num, den = sign * tot[:, 0], tot[:, 1]  # (of the event's pixel and polarity)
-        ok = den > 0
-        den = jnp.where(ok, den, 1.0)
-        u = jnp.where(ok, num / den, 0.0)
-        inv_den = jnp.where(ok, 1.0 / den, 0.0)
+        # (of the event's pixel and polarity)
+        u, inv_den = _least_squares_ratio(sign * tot[:, 0], tot[:, 1])
         da = sign * tot[:, 2 : 2 + t].T  # (T, E)
         db = 2.0 * tot[:, 2 + t :].T
         return m * u, m * ((da - u * db) * inv_den)
@@ -672,14 +658,6 @@ def packed_scaled_tangents(block: PackedEvents, d, dd, inv, d_inv, per_pixel=Fal
     r = jnp.where(live, d * u - pol, 0.0)
     dr = jnp.where(live, dd * u + d * du, 0.0)
     return r, dr
-
-
-def packed_residuals(
-    rig: Rig, block: PackedEvents, traces, *, per_pixel=False, filtered=None
-):
-    """:func:`chart_residuals` of a packed block of events, `(E,)`: the same values
-    event for event."""
-    return packed_scaled(rig, block, packed_log_steps(rig, block, traces, filtered), per_pixel)
 
 
 def _with_column_offsets(rig: Rig, width: int) -> Rig:

@@ -316,6 +316,8 @@ def _packed(data: ChartData, dtype):
     slot = start[rows] + pos
     t = np.asarray(data.t_us, dtype)
     size = shape[0] * e
+    column = np.zeros(size, np.asarray(data.column).dtype)  # (padding: 0)
+    column[slot] = np.asarray(data.column)[rows]
 
     def field(values, fill, kind):
         out = np.full(size, fill, kind)
@@ -329,16 +331,13 @@ def _packed(data: ChartData, dtype):
     pixel = np.maximum(np.maximum.accumulate(pixel.reshape(shape), axis=1), 0)
     blocks = PackedEvents(
         t=field(t[rows, pos], 0, dtype),
-        t_prev=field(np.where(pos > 0, t[rows, np.maximum(pos - 1, 0)], 0), 0, dtype),
         first=field(pos == 0, True, bool),
         polarity=field(np.asarray(data.polarity)[rows, pos], 0, np.int32),
         mask=field(mask[rows, pos], False, bool),
-        column=field(np.asarray(data.column)[rows], 0, np.asarray(data.column).dtype),
+        column=jnp.asarray(column.reshape(shape)),
         spectrum=field(np.asarray(data.spectrum)[rows], 0, np.asarray(data.spectrum).dtype),
         pixel=jnp.asarray(pixel),
     )
-    column = np.zeros(size, np.int64)
-    column[slot] = np.asarray(data.column)[rows]
     layout = _Layout(shape, rows, pos, slot, column.reshape(shape), (n, k))
     return blocks, layout
 
@@ -381,26 +380,21 @@ def _fit_tables(params, fit: _FitData):
     return traces.values, jnp.zeros((0,), traces.values.dtype)
 
 
-def _block_log_steps(params, tables, block, fit: _FitData):
-    """The model log steps of one packed block's events, `(E,)`."""
-    r = _fit_rig(params, fit)
+def _block_log_steps(rig: Rig, tables, block, fit: _FitData):
+    """The model log steps of one packed block's events, `(E,)` (`rig`: the fit's,
+    :func:`_fit_rig`)."""
     lo, step = fit.overlap_lo_nm, fit.overlap_step_nm
     traces = BandTable(tables[0], lo, step)
     filtered = BandTable(tables[1], lo, step) if tables[1].size else None
-    return packed_log_steps(r, block, traces, filtered)
-
-
-def _block_scaled(params, d, block, keep, profile, fit: _FitData):
-    """One packed block's residuals from its log steps `d`, `(E,)` (0 in padding and
-    in dropped pixels)."""
-    return packed_scaled(_fit_rig(params, fit), block, d, profile) * keep
+    return packed_log_steps(rig, block, traces, filtered)
 
 
 def _block_residuals(params, tables, block, keep, profile, fit: _FitData):
     """Event residuals of one packed block, `(E,)` (0 in padding and in dropped
     pixels)."""
-    d = _block_log_steps(params, tables, block, fit)
-    return _block_scaled(params, d, block, keep, profile, fit)
+    r = _fit_rig(params, fit)
+    d = _block_log_steps(r, tables, block, fit)
+    return packed_scaled(r, block, d, profile) * keep
 
 
 def _band_values(theta, band):
@@ -560,7 +554,8 @@ def _normal_equations(
         block, kb = xs
 
         def steps(uf, tb):
-            return _block_log_steps(_theta(uf, unravel, scale), tb, block, fit)
+            rig = _fit_rig(_theta(uf, unravel, scale), fit)
+            return _block_log_steps(rig, tb, block, fit)
 
         # The log steps' tangents one at a time (their table lookups), then the
         # residuals' all at once (their per-pixel sums: one segment sum).
