@@ -20,6 +20,7 @@ from ._illumination import band_table as band_table
 from ._illumination import column_time_table as column_time_table
 from ._illumination import fwhm_to_sigma as fwhm_to_sigma
 from ._illumination import lookup as lookup
+from ._illumination import lookup_tangents as lookup_tangents
 from ._illumination import sampled_profile_overlap as sampled_profile_overlap
 from ._illumination import sampled_profile_product as sampled_profile_product
 from ._illumination import sweep_times_us as sweep_times_us

@@ -80,10 +80,11 @@ class BandTable:
     """Response of each fine sub-bin (or channel) to a band centred at λc.
 
     `values[i, f]` is the intensity a reflectance-1 sub-bin `f` contributes when the band
-    centre is `lo_nm + i * step_nm` (zero outside the table).
+    centre is `lo_nm + i * step_nm` (zero outside the table). (A table that carries
+    its tangents has one more axis: :func:`lookup_tangents`.)
     """
 
-    values: Float[Array, "n f"]
+    values: Float[Array, "n f *tangents"]
     lo_nm: float
     step_nm: float
 
@@ -307,41 +308,93 @@ def lookup(
     table step (≈ 6 µs of sweep time at the default β). Differentiable in `centre_nm`
     and in the table values.
     """
+    if order not in (1, 3):
+        raise ValueError(f"order must be 1 or 3, got {order}")
+    n = table.values.shape[0]
+    i0, inside = _stencil(table, centre_nm)
+    if column is None:
+        points = [table.values[i] for i in _points(i0, n, order)]
+        v = _interpolate(points, _fraction(table, centre_nm, i0)[..., None], order)
+        return jnp.where(inside[..., None], v, 0.0)
+    col = jnp.broadcast_to(column, i0.shape)
+    points = [table.values[i, col] for i in _points(i0, n, order)]
+    v = _interpolate(points, _fraction(table, centre_nm, i0), order)
+    return jnp.where(inside, v, 0.0)
+
+
+def lookup_tangents(
+    table: BandTable,
+    centre_nm: Float[Array, "..."],
+    d_centre_nm: Float[Array, "t ..."],
+    *,
+    column: Int[Array, "..."],
+    order: int = 3,
+) -> tuple[Float[Array, "..."], Float[Array, "t ..."]]:
+    """:func:`lookup` (one column per point) and its tangents along T directions at
+    once: `(value, d_value)`, `d_value` of shape `(T,) + centre_nm.shape`.
+
+    `table.values` carries a trailing axis of 1 + T: `[..., 0]` the table, `[..., 1:]`
+    its tangents; `d_centre_nm` (`(T,) + centre_nm.shape`) the centres' tangents.
+    Equal to `jax.jvp` of :func:`lookup` along each direction, but each stencil point
+    is gathered once for the table and all its tangents (a row of 1 + T values):
+    JAX's derivative of a lookup gathers again per direction, and on XLA's CPU
+    backend those gathers were most of a chart fit's Gauss–Newton pass (2026-12-08).
+    """
+    if order not in (1, 3):
+        raise ValueError(f"order must be 1 or 3, got {order}")
+    n = table.values.shape[0]
+    i0, inside = _stencil(table, centre_nm)
+    col = jnp.broadcast_to(column, i0.shape)
+    rows = [table.values[i, col] for i in _points(i0, n, order)]  # each (..., 1 + T)
+    points = [r[..., 0] for r in rows]
+    d_points = [jnp.moveaxis(r[..., 1:], -1, 0) for r in rows]
+
+    def value(points, centre):
+        return _interpolate(points, _fraction(table, centre, i0), order)
+
+    v, lin = jax.linearize(value, points, centre_nm)
+    dv = jax.vmap(lin)(d_points, d_centre_nm)
+    return jnp.where(inside, v, 0.0), jnp.where(inside, dv, 0.0)
+
+
+def _stencil(table: BandTable, centre_nm):
+    """The interpolation's first point (the table row at or below each centre, at most
+    the last but one) and whether the centre lies on the table."""
     n = table.values.shape[0]
     pos = (centre_nm - table.lo_nm) / table.step_nm
     inside = (pos >= 0) & (pos <= n - 1)
-    pos = jnp.clip(pos, 0, n - 1)
-    i0f = jnp.clip(jnp.floor(pos), 0, n - 2)
-    i0 = i0f.astype(jnp.int32)
-    if column is None:
-        frac = (pos - i0f)[..., None]
+    i0f = jnp.clip(jnp.floor(jnp.clip(pos, 0, n - 1)), 0, n - 2)
+    return i0f.astype(jnp.int32), inside
 
-        def vals(i):
-            return table.values[i]
-    else:
-        frac = pos - i0f
-        col = jnp.broadcast_to(column, i0.shape)
 
-        def vals(i):
-            return table.values[i, col]
+def _fraction(table: BandTable, centre_nm, i0):
+    """Each centre's position past its first point, in table steps (differentiable in
+    the centre; `i0` from :func:`_stencil`)."""
+    n = table.values.shape[0]
+    pos = jnp.clip((centre_nm - table.lo_nm) / table.step_nm, 0, n - 1)
+    return pos - i0.astype(pos.dtype)
 
+
+def _points(i0, n: int, order: int):
+    """The rows the interpolation reads: 2 (linear) or 4 (cubic; clamped at the ends)."""
     if order == 1:
-        v = vals(i0) * (1 - frac) + vals(i0 + 1) * frac
-    elif order == 3:
-        p0 = vals(jnp.maximum(i0 - 1, 0))
-        p1, p2 = vals(i0), vals(i0 + 1)
-        p3 = vals(jnp.minimum(i0 + 2, n - 1))
-        m1, m2 = 0.5 * (p2 - p0), 0.5 * (p3 - p1)
-        f2, f3 = frac * frac, frac * frac * frac
-        v = (
-            (2 * f3 - 3 * f2 + 1) * p1
-            + (f3 - 2 * f2 + frac) * m1
-            + (-2 * f3 + 3 * f2) * p2
-            + (f3 - f2) * m2
-        )
-    else:
-        raise ValueError(f"order must be 1 or 3, got {order}")
-    return jnp.where(inside if column is not None else inside[..., None], v, 0.0)
+        return [i0, i0 + 1]
+    return [jnp.maximum(i0 - 1, 0), i0, i0 + 1, jnp.minimum(i0 + 2, n - 1)]
+
+
+def _interpolate(points, frac, order: int):
+    """Linear, or cubic Hermite with Catmull–Rom slopes, between the middle points."""
+    if order == 1:
+        return points[0] * (1 - frac) + points[1] * frac
+    p0, p1, p2, p3 = points
+    m1, m2 = 0.5 * (p2 - p0), 0.5 * (p3 - p1)
+    f2, f3 = frac * frac, frac * frac * frac
+    return (
+        (2 * f3 - 3 * f2 + 1) * p1
+        + (f3 - 2 * f2 + frac) * m1
+        + (-2 * f3 + 3 * f2) * p2
+        + (f3 - f2) * m2
+    )
 
 
 def column_time_table(

@@ -20,9 +20,9 @@ from evhsi_jax._calibrate._chart import chart_data
 from evhsi_jax._model import band_overlap
 
 
-@pytest.fixture(scope="module", params=[False, True], ids=["band kept", "band fitted"])
-def system(request):
-    """(With the band fitted, the system holds its 17 knots and their prior too.)"""
+@pytest.fixture(scope="module")
+def packed():
+    """A 12×6 chart's events packed into blocks small enough that they fill several."""
     h, w = 12, 6
     truth = ev.Rig(threshold_on=0.17, photoreceptor_hz=20000.0)
     chart = ev.load_scene("gray-chart", (h, w))
@@ -38,6 +38,15 @@ def system(request):
             blocks, layout = F._packed(data, jnp.float64)
         finally:
             F.BLOCK_EVENTS = old
+    return rig, data, blocks, layout
+
+
+@pytest.fixture(scope="module", params=[False, True], ids=["band kept", "band fitted"])
+def system(request, packed):
+    """(With the band fitted, the system holds its 17 knots and their prior too.)"""
+    rig, data, blocks, layout = packed
+    w = data.width
+    with jax.enable_x64(True):
         band = F._band_start(rig, jnp.float64) if request.param else None
         fit = F._fit_data(rig, F._response_basis(rig, 2), blocks, data.spectra, None,
                           band_overlap(rig), band, jnp.ones((), jnp.float64),
@@ -302,3 +311,61 @@ def test_packed_residuals_and_tangents_are_the_lists(system, per_pixel):
     for g, w in zip(got, want, strict=True):
         w = np.asarray(w)
         np.testing.assert_allclose(g, w, rtol=1e-10, atol=1e-12 * np.abs(w).max())
+
+
+@pytest.mark.parametrize("cutoff_hz", [0.0, 20000.0], ids=["ideal", "low-pass"])
+def test_packed_log_step_tangents_are_the_jvps(packed, cutoff_hz):
+    """`packed_log_step_tangents` (the table read once for every tangent) against
+    `jax.jvp` of `packed_log_steps` along each direction: directions that move β,
+    the baseline, the sweep's curvature, the refractory time and every column offset
+    together with the table the events read (the traces, or their low-passed log
+    levels)."""
+    from evhsi_jax._calibrate import _chart as C
+
+    _, data, blocks, _ = packed
+    w = data.width
+    with jax.enable_x64(True):
+        rig = F._with_column_offsets(ev.Rig(photoreceptor_hz=cutoff_hz), w)
+        rig = rig.astype(jnp.float64)
+        tab = C.spectral_traces(rig, data.spectra)
+        if cutoff_hz:
+            tab = C.lowpassed_traces(rig, tab)
+
+        def rig_at(u):
+            return rig.with_leaves(
+                beta_nm_per_rad=rig.beta_nm_per_rad * jnp.exp(u[0]),
+                baseline_rel=rig.baseline_rel + u[1],
+                sweep_curvature_nm=u[2],
+                refractory_us=rig.refractory_us + u[3],
+                column_offsets_us=rig.column_offsets_us + u[4:],
+            )
+
+        u = jnp.concatenate([jnp.asarray([0.01, 0.02, 0.5, 1.0]), jnp.zeros(w)])
+        t = 3
+        tans = jr.normal(jr.key(7), (t, u.size), jnp.float64)
+        d_tab = jr.normal(jr.key(8), (t,) + tab.values.shape, jnp.float64)
+        # The offsets' tangents: the last w entries of each direction.
+        offsets = jnp.concatenate([rig_at(u).column_offsets(w)[:, None], tans[:, 4:].T], 1)
+        stacked = jnp.concatenate([tab.values[..., None], jnp.moveaxis(d_tab, 0, -1)], -1)
+        table = C.BandTable(stacked, tab.lo_nm, tab.step_nm)
+
+        def steps(u, tv, block):
+            t_ = C.BandTable(tv, tab.lo_nm, tab.step_nm)
+            return C.packed_log_steps(rig_at(u), block, t_, t_ if cutoff_hz else None)
+
+        def both(block):
+            d, dd = C.packed_log_step_tangents(rig_at, u, tans, block, table, offsets)
+            want = [steps(u, tab.values, block)]
+            for i in range(t):
+                want.append(jax.jvp(lambda u, tv: steps(u, tv, block),
+                                    (u, tab.values), (tans[i], d_tab[i]))[1])  # fmt: skip
+            return d, dd, jnp.stack(want)
+
+        d, dd, want = jax.jit(jax.vmap(both))(blocks)
+    assert float(jnp.abs(want[:, 1:]).max()) > 0.0
+    np.testing.assert_allclose(d, want[:, 0], rtol=1e-12, atol=1e-12)
+    scale = float(jnp.abs(want[:, 1:]).max())
+    np.testing.assert_allclose(
+        jnp.moveaxis(dd, 1, 0), jnp.moveaxis(want[:, 1:], 1, 0), rtol=1e-10,
+        atol=1e-12 * scale,
+    )  # fmt: skip

@@ -141,6 +141,50 @@ def test_lookup_any_shape():
     )
 
 
+@pytest.mark.parametrize("order", [1, 3])
+def test_lookup_tangents_are_the_jvps_of_lookup(order):
+    """`lookup_tangents` (the table and its tangents read in one gather) against
+    `jax.jvp` of `lookup` along each direction: tangents of the table's values and of
+    the centres together, with centres at nodes, between them, near the ends and off
+    the table (value and tangents 0 there)."""
+    from evhsi_jax._model import BandTable, lookup_tangents
+
+    with jax.enable_x64(True):
+        table = band_table(Rig()).channels(Rig().grid.sub)
+        values = jnp.asarray(table.values, jnp.float64)[:, :5]
+        n = values.shape[0]
+        nodes = table.lo_nm + table.step_nm * np.arange(n)
+        rng = np.random.default_rng(1)
+        centres = np.concatenate(
+            [rng.uniform(nodes[0], nodes[-1], 38), nodes[[0, 1, 5, -2, -1]],
+             [nodes[0] - 3.0, nodes[-1] + 0.2]]
+        ).reshape(3, 3, 5)  # fmt: skip
+        centres = jnp.asarray(centres)
+        column = jnp.asarray(rng.integers(0, 5, centres.shape))
+        t = 3
+        d_values = jnp.asarray(rng.normal(size=(t,) + values.shape))
+        d_centres = jnp.asarray(rng.normal(size=(t,) + centres.shape))
+
+        def f(v, c):
+            return lookup(BandTable(v, table.lo_nm, table.step_nm), c, order=order,
+                          column=column)  # fmt: skip
+
+        stacked = jnp.concatenate([values[..., None], jnp.moveaxis(d_values, 0, -1)], -1)
+        got, d_got = lookup_tangents(
+            BandTable(stacked, table.lo_nm, table.step_nm), centres, d_centres,
+            column=column, order=order,
+        )  # fmt: skip
+        np.testing.assert_allclose(got, f(values, centres), rtol=1e-12, atol=1e-300)
+        for i in range(t):
+            want = jax.jvp(f, (values, centres), (d_values[i], d_centres[i]))[1]
+            np.testing.assert_allclose(d_got[i], want, rtol=1e-12, atol=1e-14)
+        assert not np.any(np.asarray(d_got)[:, -1, -1, -2:])  # off the table
+    assert d_got.shape == (t,) + centres.shape
+    with pytest.raises(ValueError, match="order"):
+        lookup_tangents(BandTable(stacked, table.lo_nm, table.step_nm), centres,
+                        d_centres, column=column, order=2)  # fmt: skip
+
+
 def test_column_time_table_reads_band_centre():
     rig = Rig()
     table = band_table(rig)
