@@ -85,3 +85,55 @@ HEAVY_FIRST = (
 def pytest_collection_modifyitems(config, items):
     rank = {name: i for i, name in enumerate(HEAVY_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
+
+
+# The fused reconstruction's numba kernel takes ~95 s of one core to compile on a 2-core
+# machine (2026-12-08), once per install. With an empty cache (a fresh clone: CI) the
+# heavy modules above reach their first reconstruction on both workers at about the
+# same time, and one waits on the other's compile lock (`_base._numba`) with its core
+# idle. Under pytest-xdist the controller starts one small reconstruction in a
+# background process as the session starts: the kernel compiles while the workers run
+# their calibrations, and they load it from numba's cache. Nothing depends on it: a
+# worker that needs the kernel first waits for the lock as before, or compiles it
+# itself if the process failed.
+_WARM = (
+    "import jax.random as jr, evhsi_jax as ev; s = ev.load_scene('tcs', (4, 6)); "
+    "ev.reconstruct(ev.simulate(s, ev.Rig(), sweeps=1, key=jr.key(0)), ev.Rig())"
+)
+_warm_process = None
+
+
+def _kernel_cache_is_current() -> bool:
+    """Whether numba's cache beside the fused kernel looks newer than its source (a
+    heuristic: a stale or foreign entry only costs the background process)."""
+    import evhsi_jax._reconstruct as rec
+
+    src = Path(rec.__file__).parent / "_fused_jit.py"
+    index = list((src.parent / "__pycache__").glob("_fused_jit.solve_pixels-*.nbi"))
+    return any(p.stat().st_mtime >= src.stat().st_mtime for p in index)
+
+
+def pytest_sessionstart(session):
+    global _warm_process
+    config = session.config
+    if hasattr(config, "workerinput") or not getattr(config.option, "numprocesses", 0):
+        return  # an xdist worker, or no workers
+    if os.environ.get("EVHSI_NO_NUMBA") or os.environ.get("NUMBA_CACHE_DIR"):
+        return
+    if _kernel_cache_is_current():
+        return
+    import subprocess
+    import sys
+
+    _warm_process = subprocess.Popen(
+        [sys.executable, "-c", _WARM],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+
+
+def pytest_sessionfinish(session):
+    if _warm_process is not None and _warm_process.poll() is None:
+        _warm_process.kill()
+        _warm_process.wait()

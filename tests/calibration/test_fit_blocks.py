@@ -70,7 +70,10 @@ def system(request, packed):
         yield u, scale, keep, fit, data, blocks, layout
 
 
+@jax.jit
 def _dense(u, scale, keep, fit, profile):
+    """JᵀJ, Jᵀr and rᵀr of every residual (the events' and the priors'), from the
+    dense `jax.jacfwd`. (`profile` an array, as in the fit: one program for both.)"""
     flat, unravel = jax.flatten_util.ravel_pytree(u)
 
     def all_residuals(uf):
@@ -79,8 +82,13 @@ def _dense(u, scale, keep, fit, profile):
         band = [F._band_prior(th["band"], fit.band)] if "band" in th else []
         return jnp.concatenate([res, F._prior_residuals(th, fit), *band])
 
-    r, j = jax.jit(lambda uf: (all_residuals(uf), jax.jacfwd(all_residuals)(uf)))(flat)
+    r, j = all_residuals(flat), jax.jacfwd(all_residuals)(flat)
     return j.T @ j, j.T @ r, r @ r
+
+
+@jax.jit
+def _system(u, scale, keep, fit, profile):
+    return F._fit_system(u, (scale, (profile, keep, fit)))
 
 
 @pytest.mark.parametrize("profile", [False, True])
@@ -95,7 +103,8 @@ def test_blocked_normal_equations_match_the_dense_jacobian(system, profile):
     assert all(len(c) >= 2 for c in per_block), per_block
     with jax.enable_x64(True):
         # jitted (op by op, a cold cache compiled every primitive on its own)
-        h, b, ss = jax.jit(lambda u: F._fit_system(u, (scale, (profile, keep, fit))))(u)
+        profile = jnp.asarray(profile)  # (as in the fit: one program for both)
+        h, b, ss = _system(u, scale, keep, fit, profile)
         h_ref, b_ref, ss_ref = _dense(u, scale, keep, fit, profile)
     np.testing.assert_allclose(h, h_ref, rtol=1e-9, atol=1e-9 * float(jnp.max(h_ref)))
     np.testing.assert_allclose(
@@ -128,13 +137,13 @@ def test_jacobi_scale_by_differences_matches_the_derivatives(system):
 
 def test_reduced_residual_has_the_full_gauss_newton_model(system):
     u, scale, keep, fit, *_ = system
-    args = (scale, (True, keep, fit))
     with jax.enable_x64(True):
+        args = (scale, (jnp.asarray(True), keep, fit))
         flat, unravel = jax.flatten_util.ravel_pytree(u)
         res = jax.jit(lambda uf: F._fit_residuals_scaled(unravel(uf), args))
         red = res(flat)
         jt = jax.jit(jax.jacfwd(res))(flat)
-        h_ref, b_ref, ss_ref = _dense(u, scale, keep, fit, True)
+        h_ref, b_ref, ss_ref = _dense(u, scale, keep, fit, jnp.asarray(True))
     # Profiled thresholds: their columns are zero and get a unit pivot (gradient 0).
     live = np.asarray(jnp.diag(h_ref) > 0)
     assert (~live).sum() == 2
