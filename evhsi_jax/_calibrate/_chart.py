@@ -594,12 +594,18 @@ class PackedEvents(NamedTuple):
 
 def packed_log_steps(rig: Rig, block: PackedEvents, traces, filtered=None):
     """:func:`chart_log_steps` of a packed block of events, `(E,)`."""
-    t = block.t
-    t_prev = jnp.concatenate([jnp.zeros_like(t[..., :1]), t[..., :-1]], axis=-1)
-    t_ref = jnp.where(block.first, jnp.zeros_like(t), t_prev + rig.refractory_us)
+    t_ref = _packed_references(block, rig.refractory_us)
     return _log_steps_at(
         rig, block.t, t_ref, block.mask, block.column, block.spectrum, traces, filtered
     )
+
+
+def _packed_references(block: PackedEvents, refractory_us):
+    """Each packed event's reference time: the recording start for a pixel's first
+    event, else the slot before's time plus the refractory period."""
+    t = block.t
+    t_prev = jnp.concatenate([jnp.zeros_like(t[..., :1]), t[..., :-1]], axis=-1)
+    return jnp.where(block.first, jnp.zeros_like(t), t_prev + refractory_us)
 
 
 def packed_log_step_tangents(rig_at, u, tans, block: PackedEvents, traces, offsets):
@@ -618,14 +624,12 @@ def packed_log_step_tangents(rig_at, u, tans, block: PackedEvents, traces, offse
     """
     lowpass = rig_at(u).effects.photoreceptor_hz > 0
     off = offsets[block.column]  # (E, 1 + T)
-    t = block.t
-    t_prev = jnp.concatenate([jnp.zeros_like(t[..., :1]), t[..., :-1]], axis=-1)
 
     def geometry(u, off):  # the events' and their references' band centres, the base
         rig = rig_at(u)
-        t_ref = jnp.where(block.first, jnp.zeros_like(t), t_prev + rig.refractory_us)
+        t_ref = _packed_references(block, rig.refractory_us)
         base = rig.baseline_level
-        return rig.band_centre_nm(t, off), rig.band_centre_nm(t_ref, off), base
+        return rig.band_centre_nm(block.t, off), rig.band_centre_nm(t_ref, off), base
 
     primal, lin = jax.linearize(geometry, u, off[:, 0])
     tangents = jax.vmap(lin)(tans, off[:, 1:].T)
