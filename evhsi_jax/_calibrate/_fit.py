@@ -560,8 +560,9 @@ def _normal_equations(
         return jnp.concatenate([value[..., None], jnp.moveaxis(tangents, 0, -1)], -1)
 
     # What every block reads, with its tangents: the table the events see (the
-    # low-passed traces when the rig has a cut-off) and the column offsets.
-    which = 1 if tables[1].size else 0
+    # low-passed traces when the rig has a cut-off: the test `_log_steps_at` and
+    # `packed_log_step_tangents` make) and the column offsets.
+    which = int(rig_at(u_flat).effects.photoreceptor_hz > 0)
     traces = BandTable(
         with_tangents(tables[which], d_tables[which]),
         fit.overlap_lo_nm,
